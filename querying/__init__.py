@@ -1,0 +1,1 @@
+"""Text -> relevancy -> masks and 3D selections; image metrics. Works on tensors and embeddings only."""
