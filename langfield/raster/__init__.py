@@ -1,0 +1,130 @@
+"""Differentiable rasterization of 3D Gaussians with any number of channels.
+
+:func:`rasterize` projects (PyTorch, shared), bins into 16x16 tiles (shared) and composites with the
+chosen backend: ``"torch"`` (the readable reference) or ``"cpu"`` (numba kernels, hand-written
+backward). ``"auto"`` picks ``"cpu"``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+import torch
+from torch import Tensor
+
+from langfield.camera import Camera
+from langfield.raster.binning import bin_gaussians, opacity_aware_radii
+from langfield.raster.projection import NEAR_PLANE, Projected, project_gaussians, quat_to_rotmat
+from langfield.raster.torch_backend import rasterize_torch
+
+Backend = Literal["auto", "torch", "cpu"]
+BACKENDS: tuple[str, ...] = ("torch", "cpu")
+
+
+class RasterOutput(NamedTuple):
+    """What :func:`rasterize` returns.
+
+    Attributes:
+        image: [H, W, C] composited channels (background included).
+        alpha: [H, W] accumulated opacity.
+        means2d: [N, 2] projected centres; holds ``.grad`` after backward (for densification).
+        radii: [N] int32 pixel radii, 0 where culled.
+    """
+
+    image: Tensor
+    alpha: Tensor
+    means2d: Tensor
+    radii: Tensor
+
+
+def resolve_backend(backend: Backend) -> str:
+    """The concrete backend name for ``backend`` ("auto" -> "cpu")."""
+    if backend == "auto":
+        return "cpu"
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown rasterizer backend {backend!r}; choose from auto, {', '.join(BACKENDS)}")
+    return backend
+
+
+def composite(
+    projected: Projected,
+    opacities: Tensor,
+    features: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None = None,
+    backend: Backend = "auto",
+) -> tuple[Tensor, Tensor]:
+    """Composites already projected Gaussians: returns image [H, W, C] and alpha [H, W]."""
+    n_ch = features.shape[1]
+    if background is None:
+        background = features.new_zeros(n_ch)
+    background = torch.as_tensor(background, dtype=features.dtype).reshape(n_ch)
+    opacities = opacities.reshape(-1)
+    radii = opacity_aware_radii(projected.radii, projected.conics, opacities)
+    offsets, ids = bin_gaussians(projected.means2d, radii, projected.depths, width, height)
+    name = resolve_backend(backend)
+    if name == "torch":
+        fn = rasterize_torch
+    else:
+        from langfield.raster.cpu_backend import rasterize_cpu
+
+        fn = rasterize_cpu
+    return fn(projected.means2d, projected.conics, opacities, features, offsets, ids, width, height, background)
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    camera: Camera,
+    *,
+    background: Tensor | None = None,
+    backend: Backend = "auto",
+    near: float = NEAR_PLANE,
+) -> RasterOutput:
+    """Renders N Gaussians carrying C feature channels from ``camera``.
+
+    Args:
+        means: [N, 3] world positions.
+        quats: [N, 4] rotations (w, x, y, z), normalised inside with an epsilon.
+        scales: [N, 3] standard deviations (activated, not logs).
+        opacities: [N] or [N, 1] in [0, 1].
+        features: [N, C] channels to composite (colour, language latents, distance, ...).
+        camera: the view.
+        background: [C] value behind the Gaussians; zeros if None.
+        backend: "auto", "torch" or "cpu".
+        near: near plane; Gaussians closer than this (or behind the camera) are culled.
+
+    Returns:
+        :class:`RasterOutput`.
+
+    Example:
+        >>> cam = Camera.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), width=32, height=24)
+        >>> out = rasterize(torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.1),
+        ...                 torch.tensor([0.8]), torch.ones(1, 3), cam)
+        >>> out.image.shape
+        torch.Size([24, 32, 3])
+    """
+    projected = project_gaussians(
+        means, quats, scales, camera.world_to_camera(), camera.intrinsics(), camera.width, camera.height, near
+    )
+    if projected.means2d.requires_grad:
+        projected.means2d.retain_grad()
+    image, alpha = composite(
+        projected, opacities, features, camera.width, camera.height, background=background, backend=backend
+    )
+    return RasterOutput(image, alpha, projected.means2d, projected.radii)
+
+
+__all__ = [
+    "BACKENDS",
+    "RasterOutput",
+    "composite",
+    "project_gaussians",
+    "quat_to_rotmat",
+    "rasterize",
+    "resolve_backend",
+]

@@ -1,0 +1,307 @@
+"""The fast CPU rasterizer: numba kernels with a hand-written backward.
+
+Same arithmetic as :mod:`langfield.raster.torch_backend` (the oracle), arranged for a 2-core CPU:
+
+- tiles run in parallel (``prange``); inside a tile, one 16-pixel row is processed at a time, so the
+  innermost loops run over 16 contiguous pixels and the compiler vectorises them;
+- a Gaussian is skipped for a whole row when even the row's closest point to its centre gets
+  alpha < 1/255 (``q_min = dy^2 det / a`` for the conic [[a, b], [b, c]]), which changes no pixel;
+- ``exp`` is a polynomial: alpha only matters for ``q/2 <= ln 255 < 6``, where
+  ``exp(x) = (p(x / 16))^16`` with a degree-7 Taylor ``p`` is accurate to ~1e-7 and needs no SVML;
+- the backward walks each pixel's list front to back again and recomputes the transmittance, rather
+  than dividing the final transmittance by (1 - alpha) from the back; what lies behind Gaussian i is
+  ``C - prefix_i``, known from the forward output;
+- gradients are written per (tile, Gaussian) intersection and summed with ``index_add_``: no two
+  threads write the same memory, so results are deterministic.
+
+Choice of numba over a C++ extension: it needs no compiler at install time, caches its machine code
+(``cache=True``), and keeps the kernels in Python beside the reference they are tested against.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+from numba import njit, prange
+from torch import Tensor
+
+from langfield.raster.binning import TILE_SIZE
+
+_F = np.float32
+_ALPHA_MIN = _F(1.0 / 255.0)
+_ALPHA_MAX = _F(0.99)
+_T_MIN = _F(1e-4)
+_HALF = _F(0.5)
+_ONE = _F(1.0)
+_ZERO = _F(0.0)
+_EXP_FLOOR = _F(-6.0)  # exp(-6) < 1/255: below this the value only has to stay below ALPHA_MIN
+_C = tuple(_F(1.0 / math.factorial(k)) for k in range(8))
+_INV16 = _F(1.0 / 16.0)
+_ROW_MARGIN = _F(1.001)
+
+
+@njit(inline="always", fastmath=True)
+def _exp_neg(x):
+    """exp(x) for x <= 0, accurate where x >= -6 and small (< 1/255) below."""
+    t = max(x, _EXP_FLOOR) * _INV16
+    p = _C[0] + t * (_C[1] + t * (_C[2] + t * (_C[3] + t * (_C[4] + t * (_C[5] + t * (_C[6] + t * _C[7]))))))
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _forward(offsets, gids, means2d, conics, opac, q_max, colors, background, width, height, tiles_x,
+             out, t_final, n_contrib):
+    n_tiles = offsets.shape[0] - 1
+    n_ch = colors.shape[1]
+    for tile in prange(n_tiles):
+        start, end = offsets[tile], offsets[tile + 1]
+        x0 = (tile % tiles_x) * TILE_SIZE
+        y0 = (tile // tiles_x) * TILE_SIZE
+        trans = np.empty(TILE_SIZE, np.float32)
+        live = np.empty(TILE_SIZE, np.float32)
+        weight = np.empty(TILE_SIZE, np.float32)
+        last = np.empty(TILE_SIZE, np.int32)
+        acc = np.empty((n_ch, TILE_SIZE), np.float32)
+        for r in range(TILE_SIZE):
+            y = y0 + r
+            if y >= height:
+                break
+            n_live = 0
+            for p in range(TILE_SIZE):
+                trans[p] = _ONE
+                last[p] = 0
+                live[p] = _ONE if x0 + p < width else _ZERO
+                n_live += x0 + p < width
+            acc[:, :] = _ZERO
+            py = _F(y) + _HALF
+            for k in range(start, end):
+                if n_live == 0:
+                    break
+                g = gids[k]
+                ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+                dy = py - means2d[g, 1]
+                if dy * dy * (ca * cc - cb * cb) > ca * q_max[g] * _ROW_MARGIN:
+                    continue
+                o = opac[g]
+                any_hit = False
+                for p in range(TILE_SIZE):
+                    dx = _F(x0 + p) + _HALF - means2d[g, 0]
+                    q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+                    alpha = min(_ALPHA_MAX, o * _exp_neg(-_HALF * q))
+                    ok = (alpha >= _ALPHA_MIN) and (q >= _ZERO) and (live[p] > _ZERO)
+                    test = trans[p] * (_ONE - alpha)
+                    hit = ok and test >= _T_MIN
+                    if ok and not hit:
+                        live[p] = _ZERO
+                        n_live -= 1
+                    weight[p] = alpha * trans[p] if hit else _ZERO
+                    trans[p] = test if hit else trans[p]
+                    last[p] = k + 1 if hit else last[p]
+                    any_hit = any_hit or hit
+                if any_hit:
+                    for ch in range(n_ch):
+                        col = colors[g, ch]
+                        for p in range(TILE_SIZE):
+                            acc[ch, p] += weight[p] * col
+            for p in range(TILE_SIZE):
+                x = x0 + p
+                if x < width:
+                    for ch in range(n_ch):
+                        out[y, x, ch] = acc[ch, p] + trans[p] * background[ch]
+                    t_final[y, x] = trans[p]
+                    n_contrib[y, x] = last[p]
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _backward(offsets, gids, means2d, conics, opac, q_max, colors, width, height, tiles_x,
+              out, t_final, n_contrib, grad_out, grad_alpha,
+              g_means2d, g_conics, g_opac, g_colors):
+    n_tiles = offsets.shape[0] - 1
+    n_ch = colors.shape[1]
+    for tile in prange(n_tiles):
+        start, end = offsets[tile], offsets[tile + 1]
+        x0 = (tile % tiles_x) * TILE_SIZE
+        y0 = (tile // tiles_x) * TILE_SIZE
+        trans = np.empty(TILE_SIZE, np.float32)
+        t_end = np.empty(TILE_SIZE, np.float32)
+        g_a = np.empty(TILE_SIZE, np.float32)
+        last = np.empty(TILE_SIZE, np.int32)
+        weight = np.empty(TILE_SIZE, np.float32)
+        d_alpha = np.empty(TILE_SIZE, np.float32)
+        inv_1m = np.empty(TILE_SIZE, np.float32)
+        prefix = np.empty((n_ch, TILE_SIZE), np.float32)
+        total = np.empty((n_ch, TILE_SIZE), np.float32)
+        g_c = np.empty((n_ch, TILE_SIZE), np.float32)
+        for r in range(TILE_SIZE):
+            y = y0 + r
+            if y >= height:
+                break
+            row_last = 0
+            for p in range(TILE_SIZE):
+                x = x0 + p
+                if x < width:
+                    last[p] = n_contrib[y, x]
+                    t_end[p] = t_final[y, x]
+                    g_a[p] = grad_alpha[y, x]
+                    for ch in range(n_ch):
+                        total[ch, p] = out[y, x, ch]
+                        g_c[ch, p] = grad_out[y, x, ch]
+                else:
+                    last[p] = 0
+                    t_end[p] = _ONE
+                    g_a[p] = _ZERO
+                    for ch in range(n_ch):
+                        total[ch, p] = _ZERO
+                        g_c[ch, p] = _ZERO
+                row_last = max(row_last, last[p])
+                trans[p] = _ONE
+            prefix[:, :] = _ZERO
+            py = _F(y) + _HALF
+            for k in range(start, row_last):
+                g = gids[k]
+                ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+                mx, my = means2d[g, 0], means2d[g, 1]
+                dy = py - my
+                if dy * dy * (ca * cc - cb * cb) > ca * q_max[g] * _ROW_MARGIN:
+                    continue
+                o = opac[g]
+                any_hit = False
+                for p in range(TILE_SIZE):
+                    dx = _F(x0 + p) + _HALF - mx
+                    q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+                    gauss = _exp_neg(-_HALF * q)
+                    raw = o * gauss
+                    alpha = min(_ALPHA_MAX, raw)
+                    hit = (alpha >= _ALPHA_MIN) and (q >= _ZERO) and (k < last[p])
+                    weight[p] = alpha * trans[p] if hit else _ZERO
+                    inv_1m[p] = _ONE / (_ONE - alpha)
+                    # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
+                    d_alpha[p] = g_a[p] * t_end[p] * inv_1m[p] if hit else _ZERO
+                    any_hit = any_hit or hit
+                if not any_hit:
+                    continue
+                for ch in range(n_ch):
+                    col = colors[g, ch]
+                    s = _ZERO
+                    for p in range(TILE_SIZE):
+                        w = weight[p]
+                        s += w * g_c[ch, p]
+                        prefix[ch, p] += w * col
+                        # dC/d alpha_i = c_i T_i - (C - prefix_i) / (1 - alpha_i)
+                        d = col * trans[p] - (total[ch, p] - prefix[ch, p]) * inv_1m[p]
+                        d_alpha[p] += g_c[ch, p] * d if w != _ZERO else _ZERO
+                    g_colors[k, ch] += s
+                gm_x = _ZERO
+                gm_y = _ZERO
+                gca = _ZERO
+                gcb = _ZERO
+                gcc = _ZERO
+                gop = _ZERO
+                for p in range(TILE_SIZE):
+                    w = weight[p]
+                    if w != _ZERO:
+                        dx = _F(x0 + p) + _HALF - mx
+                        q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+                        gauss = _exp_neg(-_HALF * q)
+                        raw = o * gauss
+                        trans[p] = trans[p] * (_ONE - min(_ALPHA_MAX, raw))
+                        if raw < _ALPHA_MAX:  # clamped alpha passes no gradient
+                            gop += d_alpha[p] * gauss
+                            g_q = -_HALF * raw * d_alpha[p]
+                            gca += g_q * dx * dx
+                            gcb += g_q * _F(2.0) * dx * dy
+                            gcc += g_q * dy * dy
+                            gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
+                            gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
+                g_means2d[k, 0] += gm_x
+                g_means2d[k, 1] += gm_y
+                g_conics[k, 0] += gca
+                g_conics[k, 1] += gcb
+                g_conics[k, 2] += gcc
+                g_opac[k] += gop
+
+
+def _q_max(opacities: np.ndarray) -> np.ndarray:
+    """Largest q at which ``o exp(-q/2)`` still reaches 1/255; negative if never."""
+    with np.errstate(divide="ignore"):
+        q = 2.0 * np.log(np.maximum(opacities.astype(np.float64), 1e-30) * 255.0)
+    return np.maximum(q, -1.0).astype(np.float32)
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height):
+        m = means2d.detach().float().contiguous().numpy()
+        cn = conics.detach().float().contiguous().numpy()
+        op = opacities.detach().float().contiguous().numpy()
+        col = colors.detach().float().contiguous().numpy()
+        bg = background.detach().float().contiguous().numpy()
+        offs = tile_offsets.contiguous().numpy()
+        ids = gaussian_ids.contiguous().numpy()
+        qm = _q_max(op)
+        n_ch = col.shape[1]
+        out = np.empty((height, width, n_ch), np.float32)
+        t_final = np.empty((height, width), np.float32)
+        n_contrib = np.empty((height, width), np.int32)
+        tiles_x = math.ceil(width / TILE_SIZE)
+        _forward(offs, ids, m, cn, op, qm, col, bg, width, height, tiles_x, out, t_final, n_contrib)
+        ctx.arrays = (offs, ids, m, cn, op, qm, col, out, t_final, n_contrib)
+        ctx.size = (width, height, tiles_x)
+        ctx.gaussian_ids = gaussian_ids
+        ctx.n = means2d.shape[0]
+        return torch.from_numpy(out), torch.from_numpy(1.0 - t_final)
+
+    @staticmethod
+    def backward(ctx, grad_image, grad_alpha):
+        offs, ids, m, cn, op, qm, col, out, t_final, n_contrib = ctx.arrays
+        width, height, tiles_x = ctx.size
+        n_isect, n_ch = ids.shape[0], col.shape[1]
+        g_m = np.zeros((n_isect, 2), np.float32)
+        g_cn = np.zeros((n_isect, 3), np.float32)
+        g_op = np.zeros(n_isect, np.float32)
+        g_col = np.zeros((n_isect, n_ch), np.float32)
+        go = np.ascontiguousarray(grad_image.float().numpy()) if grad_image is not None else np.zeros_like(out)
+        ga = np.ascontiguousarray(grad_alpha.float().numpy()) if grad_alpha is not None else np.zeros_like(t_final)
+        _backward(offs, ids, m, cn, op, qm, col, width, height, tiles_x, out, t_final, n_contrib, go, ga,
+                  g_m, g_cn, g_op, g_col)
+        idx = ctx.gaussian_ids
+        n = ctx.n
+
+        def scatter(values: np.ndarray, shape: tuple[int, ...]) -> Tensor:
+            return torch.zeros(shape, dtype=torch.float32).index_add_(0, idx, torch.from_numpy(values))
+
+        return (
+            scatter(g_m, (n, 2)),
+            scatter(g_cn, (n, 3)),
+            scatter(g_op, (n,)),
+            scatter(g_col, (n, n_ch)),
+            None, None, None, None, None,
+        )
+
+
+def rasterize_cpu(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    tile_offsets: Tensor,
+    gaussian_ids: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Same contract as :func:`langfield.raster.torch_backend.rasterize_torch`, on numba kernels."""
+    return _RasterizeCPU.apply(
+        means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height
+    )
+
+
+def num_threads() -> int:
+    """Threads the kernels run on."""
+    return numba.get_num_threads()
