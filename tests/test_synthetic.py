@@ -1,0 +1,219 @@
+"""Tests of the synthetic room: the FORMAT.md contract, determinism and the ground truth's consistency."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+
+from langfield.camera import Camera
+from langfield.synthetic import (
+    CANONICAL_PHRASES,
+    FEATURE_DIM,
+    LEVELS,
+    SYNONYMS,
+    distance_to_surfaces,
+    make_room,
+)
+
+W, H = 64, 48
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H)
+
+
+def _frames(scene: Path) -> list[dict]:
+    return json.loads((scene / "transforms.json").read_text())["frames"]
+
+
+def _names(scene: Path) -> list[str]:
+    return [Path(f["file_path"]).stem for f in _frames(scene)]
+
+
+def _cameras(scene: Path) -> dict[str, Camera]:
+    meta = json.loads((scene / "transforms.json").read_text())
+    intrinsics = (meta["w"], meta["h"], meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"])
+    cams = {}
+    for f in meta["frames"]:
+        name = Path(f["file_path"]).stem
+        cams[name] = Camera(name, *intrinsics, np.array(f["transform_matrix"]))
+    return cams
+
+
+def _primitives(scene: Path) -> list[dict]:
+    return json.loads((scene / "gt" / "primitives.json").read_text())
+
+
+def _arrays(scene: Path, name: str) -> dict[str, np.ndarray]:
+    return {
+        "image": cv2.imread(str(scene / "images" / f"{name}.png"), cv2.IMREAD_UNCHANGED),
+        "depth": np.load(scene / "depths" / f"{name}.npy"),
+        "s": np.load(scene / "language_features" / f"{name}_s.npy"),
+        "f": np.load(scene / "language_features" / f"{name}_f.npy"),
+    }
+
+
+def test_same_seed_is_byte_identical(scene: Path, tmp_path: Path) -> None:
+    again = make_room(tmp_path / "again", seed=0, width=W, height=H)
+    for name in _names(scene):
+        a, b = _arrays(scene, name), _arrays(again, name)
+        for key in a:
+            assert a[key].dtype == b[key].dtype and a[key].tobytes() == b[key].tobytes(), (name, key)
+
+
+def test_other_seed_gives_other_images(scene: Path, tmp_path: Path) -> None:
+    other = make_room(tmp_path / "other", seed=1, width=W, height=H, n_test=0)
+    a, b = _arrays(scene, "train_000"), _arrays(other, "train_000")
+    assert not np.array_equal(a["image"], b["image"])
+    assert not np.array_equal(a["f"], b["f"])
+
+
+def test_format_files_have_right_shapes_and_dtypes(scene: Path) -> None:
+    names = _names(scene)
+    assert names == [f"train_{i:03d}" for i in range(3)] + [f"test_{i:03d}" for i in range(5)]
+    for name in names:
+        arr = _arrays(scene, name)
+        assert arr["image"].shape == (H, W, 3) and arr["image"].dtype == np.uint8
+        assert arr["depth"].shape == (H, W) and arr["depth"].dtype == np.float32
+        assert np.isfinite(arr["depth"]).all()
+        s, f = arr["s"], arr["f"]
+        assert s.shape == (len(LEVELS), H, W) and np.issubdtype(s.dtype, np.integer)
+        assert f.ndim == 2 and f.shape[1] == FEATURE_DIM and f.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(f, axis=1), 1.0, atol=1e-5)
+        assert s.min() >= -1 and s.max() < len(f)
+        assert set(np.unique(s[s >= 0])) == set(range(len(f))), "every row of _f is used by a mask"
+        for level in range(len(LEVELS)):
+            assert (s[level] >= 0).any(), (name, LEVELS[level])
+        masks = list((scene / "segmentations" / name).glob("*.png"))
+        assert {"sofa.png", "table.png"} <= {m.name for m in masks}
+        for m in masks:
+            assert set(np.unique(cv2.imread(str(m), cv2.IMREAD_GRAYSCALE))) <= {0, 255}
+    assert (scene / "text_embeddings.npz").exists()
+
+
+def test_levels_nest(scene: Path) -> None:
+    for name in _names(scene):
+        s = np.load(scene / "language_features" / f"{name}_s.npy")
+        for finer, coarser in ((0, 1), (1, 2), (0, 2)):
+            for row in np.unique(s[finer][s[finer] >= 0]):
+                above = np.unique(s[coarser][s[finer] == row])
+                assert len(above) == 1 and above[0] >= 0, (name, LEVELS[finer], row, above)
+
+
+def test_intrinsics_match_images_and_poses_are_distinct(scene: Path) -> None:
+    meta = json.loads((scene / "transforms.json").read_text())
+    assert meta["camera_model"] == "PINHOLE" and meta["depth_kind"] == "disparity"
+    assert (meta["w"], meta["h"]) == (W, H) and (meta["cx"], meta["cy"]) == (W / 2, H / 2)
+    assert meta["fl_x"] == pytest.approx(0.5 * W / np.tan(np.deg2rad(30)))
+    lo, hi = np.array(meta["aabb"])
+    assert (hi - lo > 2.0).all()
+    cams = _cameras(scene)
+    train = [c.center for c in cams.values() if c.name.startswith("train")]
+    test = [c.center for c in cams.values() if c.name.startswith("test")]
+    assert [f["split"] for f in meta["frames"]] == ["train"] * 3 + ["test"] * 5
+    dists = np.linalg.norm(np.array(train)[:, None] - np.array(test)[None], axis=-1)
+    assert dists.min() > 0.1
+    for c in cams.values():  # every camera stands inside the aabb and looks at the furniture
+        assert (c.center > lo).all() and (c.center < hi).all()
+
+
+def _ranks(x: np.ndarray) -> np.ndarray:
+    r = np.empty(len(x))
+    r[np.argsort(x, kind="stable")] = np.arange(len(x))
+    return r
+
+
+def test_depth_prior_is_monotone_but_distorted(scene: Path) -> None:
+    for name in ("train_000", "test_002"):
+        prior = np.load(scene / "depths" / f"{name}.npy").astype(np.float64)
+        depth = np.load(scene / "gt" / "depth" / f"{name}.npy").astype(np.float64)
+        fg = depth > 0
+        prior, inv = prior[fg], 1.0 / depth[fg]
+        spearman = np.corrcoef(_ranks(prior), _ranks(inv))[0, 1]
+        assert spearman > 0.9
+        a = np.stack([inv, np.ones_like(inv)], axis=1)
+        coef, *_ = np.linalg.lstsq(a, prior, rcond=None)
+        relative_residual = np.std(prior - a @ coef) / np.std(prior)
+        assert relative_residual > 0.01, "the prior must not be an affine function of 1 / depth"
+
+
+def test_background_is_white_with_zero_depth_and_no_mask(scene: Path) -> None:
+    seen_background = False
+    for name in _names(scene):
+        ids = np.load(scene / "gt" / "ids" / f"{name}.npy")
+        depth = np.load(scene / "gt" / "depth" / f"{name}.npy")
+        s = np.load(scene / "language_features" / f"{name}_s.npy")
+        assert ((depth == 0) == (ids < 0)).all()
+        assert (s[:, ids < 0] == -1).all()
+        seen_background |= bool((ids < 0).any())
+    assert seen_background, "the open side of the room shows background in some view"
+
+
+def test_table_top_projects_onto_table_label(scene: Path) -> None:
+    top = next(p for p in _primitives(scene) if p["labels"]["subpart"] == "table top")
+    embeddings = np.load(scene / "text_embeddings.npz")
+    wholes = sorted({p["labels"]["whole"] for p in _primitives(scene)})
+    for name, cam in _cameras(scene).items():
+        p_cam = cam.world_to_camera(torch.float64).numpy() @ np.append(top["center"], 1.0)
+        u, v, _ = cam.intrinsics(torch.float64).numpy() @ (p_cam[:3] / p_cam[2])
+        col, row = int(np.floor(u)), int(np.floor(v))
+        assert 0 <= col < W and 0 <= row < H, name
+        depth = np.load(scene / "gt" / "depth" / f"{name}.npy")[row, col]
+        assert depth == pytest.approx(p_cam[2], abs=0.1), "ray caster and camera agree on depth"
+        s = np.load(scene / "language_features" / f"{name}_s.npy")
+        f = np.load(scene / "language_features" / f"{name}_f.npy")
+        feature = f[s[2, row, col]]
+        best = max(wholes, key=lambda w: float(feature @ embeddings[w]))
+        assert best == "table", name
+        table_mask = cv2.imread(str(scene / "segmentations" / name / "table.png"), cv2.IMREAD_GRAYSCALE)
+        assert table_mask[row, col] == 255
+
+
+def test_distance_to_surfaces(scene: Path) -> None:
+    mesh = o3d.io.read_triangle_mesh(str(scene / "gt" / "mesh.ply"))
+    vertices = np.asarray(mesh.vertices)[::97]
+    assert np.abs(distance_to_surfaces(scene, vertices)).max() < 1e-5
+    mid_air = np.array([[0.0, 0.0, 1.8]])
+    assert distance_to_surfaces(scene, mid_air)[0] > 1.0
+    top = next(p for p in _primitives(scene) if p["labels"]["subpart"] == "table top")["center"]
+    assert distance_to_surfaces(scene, np.array([top]), label="table")[0] < 0.05
+    assert distance_to_surfaces(scene, np.array([top]), label="lamp")[0] > 0.5
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        distance_to_surfaces(scene, np.zeros(3))
+
+
+def test_text_embeddings_hold_labels_synonyms_and_canonical_phrases(scene: Path) -> None:
+    emb = np.load(scene / "text_embeddings.npz")
+    labels = {label for p in _primitives(scene) for label in p["labels"].values()}
+    assert labels | set(SYNONYMS) | set(CANONICAL_PHRASES) <= set(emb.files)
+    for key in emb.files:
+        assert emb[key].shape == (FEATURE_DIM,) and emb[key].dtype == np.float32
+        assert np.linalg.norm(emb[key]) == pytest.approx(1.0, abs=1e-5)
+    for synonym, word in SYNONYMS.items():
+        others = [w for w in labels if w != word]
+        assert emb[synonym] @ emb[word] > max(emb[synonym] @ emb[w] for w in others), synonym
+    assert emb["sofa cushion"] @ emb["sofa"] > emb["sofa cushion"] @ emb["table"]
+
+
+def test_scale_scales_geometry_and_cameras(scene: Path, tmp_path: Path) -> None:
+    big = make_room(tmp_path / "big", seed=0, width=W, height=H, n_test=0, scale=2.0)
+    meta, big_meta = (json.loads((s / "transforms.json").read_text()) for s in (scene, big))
+    np.testing.assert_allclose(np.array(big_meta["aabb"]), 2.0 * np.array(meta["aabb"]), atol=1e-9)
+    depth, big_depth = (np.load(s / "gt" / "depth" / "train_001.npy") for s in (scene, big))
+    np.testing.assert_allclose(big_depth, 2.0 * depth, rtol=1e-4)
+
+
+def test_bad_arguments_are_rejected(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="image size"):
+        make_room(tmp_path, width=4, height=48)
+    with pytest.raises(ValueError, match="n_train"):
+        make_room(tmp_path, n_train=0)
+    with pytest.raises(ValueError, match="scale"):
+        make_room(tmp_path, scale=0.0)
