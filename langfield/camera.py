@@ -50,7 +50,9 @@ class Camera:
         if not np.isfinite(c2w).all():
             raise ValueError(f"camera {self.name!r}: pose has NaN or inf entries")
         if not (self.width >= 1 and self.height >= 1):
-            raise ValueError(f"camera {self.name!r}: image size must be positive, got {self.width}x{self.height}")
+            raise ValueError(
+                f"camera {self.name!r}: image size must be positive, got {self.width}x{self.height}"
+            )
         intr = np.array([self.fx, self.fy, self.cx, self.cy], dtype=np.float64)
         if not np.isfinite(intr).all() or self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"camera {self.name!r}: focal lengths must be positive and finite")
@@ -86,7 +88,9 @@ class Camera:
         w = max(1, int(round(self.width / factor)))
         h = max(1, int(round(self.height / factor)))
         sx, sy = w / self.width, h / self.height
-        return replace(self, width=w, height=h, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy)
+        return replace(
+            self, width=w, height=h, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy
+        )
 
     @classmethod
     def look_at(

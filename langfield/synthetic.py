@@ -225,7 +225,12 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
     Color = tuple[float, float, float]
 
     def add(
-        mesh: o3d.geometry.TriangleMesh, subpart: str, part: str, whole: str, color: Color, texture: str,
+        mesh: o3d.geometry.TriangleMesh,
+        subpart: str,
+        part: str,
+        whole: str,
+        color: Color,
+        texture: str,
         shift: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         mesh.translate((shift[0], shift[1], 0.0))
@@ -240,40 +245,90 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
     add(_box((4.0, 4.0, 0.05), (0.0, 0.0, -0.025)), "floor", "floor", "floor", (0.74, 0.6, 0.44), "checker")
     add(_box((4.0, 0.05, 2.5), (0.0, 2.025, 1.25)), "wall", "wall", "wall", (0.86, 0.84, 0.78), "plaster")
     add(_box((0.05, 4.05, 2.5), (-2.025, 0.025, 1.25)), "wall", "wall", "wall", (0.8, 0.83, 0.86), "plaster")
-    add(_box((2.0, 1.4, 0.01), (-0.3, 0.4, 0.005)), "rug", "rug", "rug", (0.6, 0.26, 0.22), "stripes",
-        shift())
+    add(
+        _box((2.0, 1.4, 0.01), (-0.3, 0.4, 0.005)), "rug", "rug", "rug", (0.6, 0.26, 0.22), "stripes", shift()
+    )
 
     s = shift()  # sofa against the back wall, facing -y
     fabric = (0.26, 0.36, 0.58)
     add(_box((1.6, 0.8, 0.35), (-0.3, 1.5, 0.175)), "sofa base", "sofa seat", "sofa", fabric, "fabric", s)
     for x in (-0.7, 0.1):
-        add(_box((0.78, 0.6, 0.12), (x, 1.4, 0.41)), "sofa cushion", "sofa seat", "sofa",
-            (0.36, 0.48, 0.72), "fabric", s)
-    add(_box((1.6, 0.2, 0.5), (-0.3, 1.8, 0.6)), "sofa back", "sofa back", "sofa",
-        (0.3, 0.4, 0.62), "fabric", s)
+        add(
+            _box((0.78, 0.6, 0.12), (x, 1.4, 0.41)),
+            "sofa cushion",
+            "sofa seat",
+            "sofa",
+            (0.36, 0.48, 0.72),
+            "fabric",
+            s,
+        )
+    add(
+        _box((1.6, 0.2, 0.5), (-0.3, 1.8, 0.6)),
+        "sofa back",
+        "sofa back",
+        "sofa",
+        (0.3, 0.4, 0.62),
+        "fabric",
+        s,
+    )
     for x in (-1.175, 0.575):
-        add(_box((0.15, 0.8, 0.6), (x, 1.5, 0.3)), "sofa armrest", "sofa armrests", "sofa",
-            (0.22, 0.32, 0.52), "fabric", s)
+        add(
+            _box((0.15, 0.8, 0.6), (x, 1.5, 0.3)),
+            "sofa armrest",
+            "sofa armrests",
+            "sofa",
+            (0.22, 0.32, 0.52),
+            "fabric",
+            s,
+        )
 
     s = shift()  # coffee table in front of the sofa, with a mug and a book on it
-    add(_box((1.0, 0.55, 0.04), (-0.3, 0.4, 0.44)), "table top", "table top", "table",
-        (0.56, 0.36, 0.2), "wood", s)
+    add(
+        _box((1.0, 0.55, 0.04), (-0.3, 0.4, 0.44)),
+        "table top",
+        "table top",
+        "table",
+        (0.56, 0.36, 0.2),
+        "wood",
+        s,
+    )
     for dx in (-0.45, 0.45):
         for dy in (-0.22, 0.22):
-            add(_cylinder(0.025, 0.42, (-0.3 + dx, 0.4 + dy, 0.21)), "table leg", "table legs", "table",
-                (0.3, 0.2, 0.12), "plain", s)
+            add(
+                _cylinder(0.025, 0.42, (-0.3 + dx, 0.4 + dy, 0.21)),
+                "table leg",
+                "table legs",
+                "table",
+                (0.3, 0.2, 0.12),
+                "plain",
+                s,
+            )
     red = (0.82, 0.16, 0.14)
     add(_cylinder(0.045, 0.1, (-0.05, 0.35, 0.51)), "mug body", "mug", "mug", red, "plain", s)
     add(_box((0.03, 0.015, 0.06), (0.01, 0.35, 0.51)), "mug handle", "mug", "mug", red, "plain", s)
-    add(_box((0.22, 0.16, 0.04), (-0.58, 0.45, 0.48), yaw_deg=15), "book", "book", "book",
-        (0.16, 0.46, 0.26), "plain", s)
+    add(
+        _box((0.22, 0.16, 0.04), (-0.58, 0.45, 0.48), yaw_deg=15),
+        "book",
+        "book",
+        "book",
+        (0.16, 0.46, 0.26),
+        "plain",
+        s,
+    )
 
     s = shift()  # floor lamp right of the sofa
     metal = (0.22, 0.22, 0.24)
     add(_cylinder(0.15, 0.04, (1.2, 1.6, 0.02)), "lamp base", "lamp stand", "lamp", metal, "plain", s)
     add(_cylinder(0.02, 1.3, (1.2, 1.6, 0.69)), "lamp pole", "lamp stand", "lamp", metal, "plain", s)
-    add(_cylinder(0.2, 0.28, (1.2, 1.6, 1.45)), "lamp shade", "lamp shade", "lamp",
-        (0.96, 0.88, 0.64), "fabric", s)
+    add(
+        _cylinder(0.2, 0.28, (1.2, 1.6, 1.45)),
+        "lamp shade",
+        "lamp shade",
+        "lamp",
+        (0.96, 0.88, 0.64),
+        "fabric",
+        s,
+    )
 
     s = shift()  # chair right of the table, facing it (-x)
     wood = (0.66, 0.46, 0.26)
@@ -281,16 +336,30 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
     add(_box((0.05, 0.45, 0.45), (1.3, 0.35, 0.7)), "chair back", "chair back", "chair", wood, "wood", s)
     for dx in (-0.19, 0.19):
         for dy in (-0.19, 0.19):
-            add(_cylinder(0.02, 0.425, (1.1 + dx, 0.35 + dy, 0.2125)), "chair leg", "chair legs", "chair",
-                (0.4, 0.27, 0.15), "plain", s)
+            add(
+                _cylinder(0.02, 0.425, (1.1 + dx, 0.35 + dy, 0.2125)),
+                "chair leg",
+                "chair legs",
+                "chair",
+                (0.4, 0.27, 0.15),
+                "plain",
+                s,
+            )
 
     s = shift()  # shelf in the back-left corner
     shelf = (0.52, 0.34, 0.2)
     for x in (-1.935, -1.365):
         add(_box((0.03, 0.3, 1.4), (x, 1.8, 0.7)), "shelf side", "shelf frame", "shelf", shelf, "wood", s)
     for z in (0.06, 0.5, 0.94, 1.39):
-        add(_box((0.54, 0.3, 0.025), (-1.65, 1.8, z)), "shelf board", "shelf boards", "shelf",
-            shelf, "wood", s)
+        add(
+            _box((0.54, 0.3, 0.025), (-1.65, 1.8, z)),
+            "shelf board",
+            "shelf boards",
+            "shelf",
+            shelf,
+            "wood",
+            s,
+        )
     return prims
 
 
@@ -306,8 +375,9 @@ def _room_cameras(width: int, height: int, n_train: int, n_test: int, scale: flo
     def camera(angle_deg: float, r: float, z: float, name: str) -> Camera:
         a = np.deg2rad(angle_deg)
         eye = np.array([target[0] + r * np.sin(a), target[1] - r * np.cos(a), z])
-        return Camera.look_at(eye * scale, target * scale, width=width, height=height,
-                              fov_x_deg=_FOV_X_DEG, name=name)
+        return Camera.look_at(
+            eye * scale, target * scale, width=width, height=height, fov_x_deg=_FOV_X_DEG, name=name
+        )
 
     train_angles = np.linspace(-span / 2, span / 2, n_train) if n_train > 1 else np.zeros(1)
     cams = [camera(a, radius, eye_z, f"train_{i:03d}") for i, a in enumerate(train_angles)]
@@ -517,7 +587,12 @@ def _write_transforms(
     ]
     meta = {
         "camera_model": "PINHOLE",
-        "w": cam.width, "h": cam.height, "fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy,
+        "w": cam.width,
+        "h": cam.height,
+        "fl_x": cam.fx,
+        "fl_y": cam.fy,
+        "cx": cam.cx,
+        "cy": cam.cy,
         "depth_kind": "disparity",
         "aabb": [lo.tolist(), hi.tolist()],
         "generator": {"name": "langfield.synthetic.make_room", "seed": seed, "scale": scale},
@@ -544,13 +619,15 @@ def _write_ground_truth_mesh(gt: Path, prims: list[_Primitive]) -> None:
         merged += prim.mesh
         n = len(prim.mesh.triangles)
         lo, hi = np.asarray(prim.mesh.vertices).min(axis=0), np.asarray(prim.mesh.vertices).max(axis=0)
-        records.append({
-            "index": i,
-            "labels": dict(zip(LEVELS, prim.labels, strict=True)),
-            "triangles": [start, start + n],
-            "aabb": [lo.tolist(), hi.tolist()],
-            "center": ((lo + hi) / 2).tolist(),
-        })
+        records.append(
+            {
+                "index": i,
+                "labels": dict(zip(LEVELS, prim.labels, strict=True)),
+                "triangles": [start, start + n],
+                "aabb": [lo.tolist(), hi.tolist()],
+                "center": ((lo + hi) / 2).tolist(),
+            }
+        )
         start += n
     o3d.io.write_triangle_mesh(str(gt / "mesh.ply"), merged, write_ascii=False)
     (gt / "primitives.json").write_text(json.dumps(records, indent=2))

@@ -13,7 +13,9 @@ from langfield.raster.projection import project_gaussians, quat_to_rotmat
 NAMES = ("means", "quats", "scales", "opacities", "features")
 
 
-def render_and_grads(backend: str, params: list[torch.Tensor], camera: Camera, background=None, seed: int = 1):
+def render_and_grads(
+    backend: str, params: list[torch.Tensor], camera: Camera, background=None, seed: int = 1
+):
     leaves = [p.detach().clone().requires_grad_(True) for p in params]
     out = rasterize(*leaves, camera, background=background, backend=backend)
     g = torch.Generator().manual_seed(seed)
@@ -25,7 +27,7 @@ def render_and_grads(backend: str, params: list[torch.Tensor], camera: Camera, b
 
 def assert_finite(out, grads) -> None:
     assert torch.isfinite(out.image).all() and torch.isfinite(out.alpha).all()
-    for name, grad in zip(NAMES, grads):
+    for name, grad in zip(NAMES, grads, strict=True):
         assert grad is not None and torch.isfinite(grad).all(), f"non-finite gradient for {name}"
 
 
@@ -36,7 +38,7 @@ def assert_backends_agree(params, camera, background=None) -> None:
     assert_finite(fast, fast_grads)
     assert (ref.image - fast.image).abs().max() <= 1e-4
     assert (ref.alpha - fast.alpha).abs().max() <= 1e-4
-    for name, a, b in zip(NAMES, ref_grads, fast_grads):
+    for name, a, b in zip(NAMES, ref_grads, fast_grads, strict=True):
         scale = a.norm()
         if scale < 1e-8:
             assert b.norm() < 1e-6, name
@@ -65,8 +67,15 @@ def test_backends_agree_on_odd_image_size():
 def test_rendered_gaussian_lands_where_projected():
     cam = Camera.look_at((0.0, -3.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), width=41, height=31)
     means = torch.tensor([[0.3, 0.0, 0.2]])
-    out = rasterize(means, torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), 0.03), torch.tensor([0.9]),
-                    torch.ones(1, 1), cam, backend="cpu")
+    out = rasterize(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.full((1, 3), 0.03),
+        torch.tensor([0.9]),
+        torch.ones(1, 1),
+        cam,
+        backend="cpu",
+    )
     peak = torch.nonzero(out.image[..., 0] == out.image[..., 0].max())[0]
     v, u = peak.tolist()
     mx, my = out.means2d[0].tolist()
@@ -93,7 +102,7 @@ def one_gaussian(mean, scale=0.1, opacity=0.8, quat=(1.0, 0.0, 0.0, 0.0), channe
 def with_backdrop(extra: list[torch.Tensor], seed: int = 5) -> list[torch.Tensor]:
     """The hard-case Gaussians in front of ordinary ones, so gradients are exercised around them."""
     base = random_gaussians(40, extra[4].shape[1], seed=seed)
-    return [torch.cat([e, b]) for e, b in zip(extra, base)]
+    return [torch.cat([e, b]) for e, b in zip(extra, base, strict=True)]
 
 
 @pytest.fixture
@@ -137,9 +146,10 @@ def test_near_degenerate_2d_covariance(cam):
     needle[2] = torch.tensor([[1e-8, 1.0, 1e-8]])
     disc = one_gaussian((0.2, 0.0, 0.1))
     disc[2] = torch.tensor([[0.5, 1e-8, 0.5]])
-    params = with_backdrop([torch.cat([a, b]) for a, b in zip(needle, disc)])
-    proj = project_gaussians(params[0], params[1], params[2], cam.world_to_camera(), cam.intrinsics(),
-                             cam.width, cam.height)
+    params = with_backdrop([torch.cat([a, b]) for a, b in zip(needle, disc, strict=True)])
+    proj = project_gaussians(
+        params[0], params[1], params[2], cam.world_to_camera(), cam.intrinsics(), cam.width, cam.height
+    )
     assert torch.isfinite(proj.conics).all()
     assert_backends_agree(params, cam)
 

@@ -70,7 +70,9 @@ def composite(
         from langfield.raster.cpu_backend import rasterize_cpu
 
         fn = rasterize_cpu
-    return fn(projected.means2d, projected.conics, opacities, features, offsets, ids, width, height, background)
+    return fn(
+        projected.means2d, projected.conics, opacities, features, offsets, ids, width, height, background
+    )
 
 
 def rasterize(

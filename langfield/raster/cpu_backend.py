@@ -21,6 +21,7 @@ Choice of numba over a C++ extension: it needs no compiler at install time, cach
 from __future__ import annotations
 
 import math
+import os
 
 import numba
 import numpy as np
@@ -29,6 +30,12 @@ from numba import njit, prange
 from torch import Tensor
 
 from langfield.raster.binning import TILE_SIZE
+
+# numba's OpenMP layer keeps its threads spinning after each kernel, and they fight PyTorch's own
+# OpenMP threads for the 2 cores: every torch op right after a kernel ran ~50x slower. The workqueue
+# layer parks its threads instead. A user's NUMBA_THREADING_LAYER still wins.
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
 
 _F = np.float32
 _ALPHA_MIN = _F(1.0 / 255.0)
@@ -55,8 +62,22 @@ def _exp_neg(x):
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _forward(offsets, gids, means2d, conics, opac, q_max, colors, background, width, height, tiles_x,
-             out, t_final, n_contrib):
+def _forward(
+    offsets,
+    gids,
+    means2d,
+    conics,
+    opac,
+    q_max,
+    colors,
+    background,
+    width,
+    height,
+    tiles_x,
+    out,
+    t_final,
+    n_contrib,
+):
     n_tiles = offsets.shape[0] - 1
     n_ch = colors.shape[1]
     for tile in prange(n_tiles):
@@ -119,13 +140,31 @@ def _forward(offsets, gids, means2d, conics, opac, q_max, colors, background, wi
 
 
 @njit(parallel=True, fastmath=True, cache=True)
-def _backward(offsets, gids, means2d, conics, opac, q_max, colors, width, height, tiles_x,
-              out, t_final, n_contrib, grad_out, grad_alpha,
-              g_means2d, g_conics, g_opac, g_colors):
+def _backward(
+    offsets,
+    gids,
+    means2d,
+    conics,
+    opac,
+    q_max,
+    colors,
+    width,
+    height,
+    tiles_x,
+    out,
+    t_final,
+    n_contrib,
+    grad_out,
+    grad_alpha,
+    g_means2d,
+    g_conics,
+    g_opac,
+    g_colors,
+):
     n_tiles = offsets.shape[0] - 1
     n_ch = colors.shape[1]
     for tile in prange(n_tiles):
-        start, end = offsets[tile], offsets[tile + 1]
+        start = offsets[tile]  # the row loop stops at the last contributing Gaussian, before the end
         x0 = (tile % tiles_x) * TILE_SIZE
         y0 = (tile // tiles_x) * TILE_SIZE
         trans = np.empty(TILE_SIZE, np.float32)
@@ -236,7 +275,9 @@ def _q_max(opacities: np.ndarray) -> np.ndarray:
 
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height):
+    def forward(
+        ctx, means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height
+    ):
         m = means2d.detach().float().contiguous().numpy()
         cn = conics.detach().float().contiguous().numpy()
         op = opacities.detach().float().contiguous().numpy()
@@ -266,10 +307,35 @@ class _RasterizeCPU(torch.autograd.Function):
         g_cn = np.zeros((n_isect, 3), np.float32)
         g_op = np.zeros(n_isect, np.float32)
         g_col = np.zeros((n_isect, n_ch), np.float32)
-        go = np.ascontiguousarray(grad_image.float().numpy()) if grad_image is not None else np.zeros_like(out)
-        ga = np.ascontiguousarray(grad_alpha.float().numpy()) if grad_alpha is not None else np.zeros_like(t_final)
-        _backward(offs, ids, m, cn, op, qm, col, width, height, tiles_x, out, t_final, n_contrib, go, ga,
-                  g_m, g_cn, g_op, g_col)
+        go = (
+            np.ascontiguousarray(grad_image.float().numpy()) if grad_image is not None else np.zeros_like(out)
+        )
+        ga = (
+            np.ascontiguousarray(grad_alpha.float().numpy())
+            if grad_alpha is not None
+            else np.zeros_like(t_final)
+        )
+        _backward(
+            offs,
+            ids,
+            m,
+            cn,
+            op,
+            qm,
+            col,
+            width,
+            height,
+            tiles_x,
+            out,
+            t_final,
+            n_contrib,
+            go,
+            ga,
+            g_m,
+            g_cn,
+            g_op,
+            g_col,
+        )
         idx = ctx.gaussian_ids
         n = ctx.n
 
@@ -281,7 +347,11 @@ class _RasterizeCPU(torch.autograd.Function):
             scatter(g_cn, (n, 3)),
             scatter(g_op, (n,)),
             scatter(g_col, (n, n_ch)),
-            None, None, None, None, None,
+            None,
+            None,
+            None,
+            None,
+            None,
         )
 
 

@@ -1,0 +1,171 @@
+"""Benchmarks: rasterizer backends per training step, and novel-view quality against wall time.
+
+``langfield bench`` measures, on this machine:
+1. forward+backward milliseconds of each backend on one scene (median of repeats; the image error of
+   each backend against ``torch``);
+2. a training curve on the built-in scene (or ``--scene``): novel-view PSNR at checkpoints against
+   training wall time and Gaussian count.
+The JSON keys are fixed by FORMAT.md.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from langfield import gaussians as G
+from langfield.camera import Camera
+from langfield.raster import BACKENDS, rasterize
+from langfield.scene import Scene
+from langfield.trainer import TrainConfig, evaluate_psnr, train
+
+
+def backend_step_ms(
+    camera: Camera,
+    bounds: np.ndarray,
+    num_gaussians: int = 20000,
+    channels: int = 13,
+    seed: int = 0,
+    repeats: dict[str, int] | None = None,
+) -> dict[str, dict[str, float]]:
+    """Median forward+backward time of each backend on the same random Gaussians in ``bounds``.
+
+    Gaussians are initialised as training initialises them (uniform in the bounds, scales from
+    nearest-neighbour distances, opacity 0.1 raised to a spread of values), with ``channels`` random
+    feature channels (13 = RGB + 3 x 3 language latents + depth).
+    """
+    repeats = repeats or {"torch": 3, "cpu": 10}
+    splats = G.init_gaussians(bounds, num_gaussians, seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    base = [
+        splats["means"].detach(),
+        splats["quats"].detach(),
+        G.scales(splats).detach(),
+        torch.rand(num_gaussians, generator=g) * 0.8 + 0.1,
+        torch.rand(num_gaussians, channels, generator=g),
+    ]
+    weights = torch.randn(camera.height, camera.width, channels, generator=g)
+    results: dict[str, dict[str, float]] = {}
+    images: dict[str, torch.Tensor] = {}
+    for backend in BACKENDS:
+        times = []
+        for i in range(repeats.get(backend, 3) + 1):  # the first run compiles / warms caches
+            leaves = [t.clone().requires_grad_(True) for t in base]
+            t0 = time.perf_counter()
+            out = rasterize(*leaves, camera, backend=backend)
+            (out.image * weights).sum().backward()
+            if i > 0:
+                times.append(time.perf_counter() - t0)
+        images[backend] = out.image.detach()
+        results[backend] = {"step_ms": 1000 * statistics.median(times)}
+    for backend in BACKENDS:
+        results[backend]["image_max_abs_err"] = float((images[backend] - images["torch"]).abs().max())
+    return results
+
+
+def training_curve(
+    scene: Scene, iterations: int, every: int, seed: int = 0, backend: str = "auto"
+) -> list[dict]:
+    """Trains once and records novel-view PSNR and Gaussian count every ``every`` iterations."""
+    points: list[dict[str, Any]] = []
+
+    def record(step: int, seconds: float, field) -> None:
+        points.append(
+            {
+                "seconds": seconds,
+                "iterations": step,
+                "PSNR": evaluate_psnr(field, scene),
+                "mIoU": None,
+                "num_gaussians": field.num_gaussians,
+            }
+        )
+
+    train(
+        scene,
+        TrainConfig(iterations=iterations, seed=seed, backend=backend),
+        progress=True,
+        callback=record,
+        callback_every=every,
+    )
+    return points
+
+
+def plot_curve(points: list[dict], path: Path) -> None:
+    """PSNR against training seconds and against Gaussian count, one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    secs = [p["seconds"] for p in points]
+    psnrs = [p["PSNR"] for p in points]
+    axes[0].plot(secs, psnrs, "o-")
+    axes[0].set_xlabel("training wall time (s)")
+    axes[0].set_ylabel("novel-view PSNR (dB)")
+    axes[1].plot([p["num_gaussians"] for p in points], psnrs, "o-")
+    axes[1].set_xlabel("Gaussians")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.suptitle("langfield: quality against training time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def format_table(result: dict) -> str:
+    """Human-readable tables of a bench result."""
+    lines = [
+        f"rasterizer, {result['width']}x{result['height']}, {result['num_gaussians']} Gaussians, "
+        f"{result['channels']} channels (forward+backward, median):"
+    ]
+    ref = result["backends"]["torch"]["step_ms"]
+    for name, r in result["backends"].items():
+        lines.append(
+            f"  {name:6s} {r['step_ms']:9.1f} ms   {ref / r['step_ms']:6.1f}x vs torch   "
+            f"max |image - torch| {r['image_max_abs_err']:.2e}"
+        )
+    if result.get("curve"):
+        lines.append("training curve (novel views):")
+        lines.append("  iterations   seconds    PSNR   Gaussians")
+        for p in result["curve"]:
+            psnr_txt = f"{p['PSNR']:7.2f}" if p["PSNR"] is not None else "    n/a"
+            lines.append(f"  {p['iterations']:10d} {p['seconds']:9.1f} {psnr_txt} {p['num_gaussians']:11d}")
+    return "\n".join(lines)
+
+
+def run_bench(
+    scene: Scene,
+    *,
+    iterations: int,
+    every: int,
+    num_gaussians: int = 20000,
+    channels: int = 13,
+    json_path: Path | None = None,
+    plot_path: Path | None = None,
+    seed: int = 0,
+) -> dict:
+    """Runs both benchmarks on ``scene``; writes JSON and the plot where asked."""
+    camera = scene.cameras("train")[0]
+    bounds = np.asarray(scene.bounds())
+    result: dict[str, Any] = {
+        "backends": backend_step_ms(camera, bounds, num_gaussians, channels, seed),
+        "width": camera.width,
+        "height": camera.height,
+        "num_gaussians": num_gaussians,
+        "channels": channels,
+        "threads": torch.get_num_threads(),
+    }
+    result["curve"] = training_curve(scene, iterations, every, seed) if iterations > 0 else []
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(result, indent=2))
+    if plot_path is not None and result["curve"]:
+        plot_curve(result["curve"], plot_path)
+    return result

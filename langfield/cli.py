@@ -1,0 +1,253 @@
+"""The ``langfield`` command: train, render, eval, bench, demo.
+
+Each subcommand shows a progress bar on long work and ends with a one-line summary. Errors in the
+user's input (a missing file, a malformed scene, a bad flag value) are printed as one line naming the
+file or argument, with exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from langfield import __version__
+
+
+def _views_arg(text: str) -> list[str | int]:
+    return [int(v) if v.strip().isdigit() else v.strip() for v in text.split(",") if v.strip()]
+
+
+def _bounds_arg(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    vals = [float(v) for v in text.split(",")]
+    if len(vals) != 6:
+        raise argparse.ArgumentTypeError("--bounds takes six numbers: xmin,ymin,zmin,xmax,ymax,zmax")
+    return (vals[0], vals[1], vals[2]), (vals[3], vals[4], vals[5])
+
+
+def _scene_args(args: argparse.Namespace) -> dict:
+    return {"resolution": args.resolution, "views": args.views, "n_views": args.n_views}
+
+
+def _add_scene_flags(p: argparse.ArgumentParser) -> None:
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--views",
+        type=_views_arg,
+        default=None,
+        help="training views: comma-separated names or indices (the rest are test views)",
+    )
+    group.add_argument(
+        "--n-views",
+        type=int,
+        default=None,
+        help="number of training views spread evenly (LLFF protocol; default: the file's split, else 3)",
+    )
+    p.add_argument(
+        "--resolution", type=float, default=1.0, help="downscale factor of the images (2 halves them)"
+    )
+
+
+def _load_field_and_scene(out: str, scene_path: str | None):
+    from langfield.field import LanguageField
+    from langfield.scene import load_scene
+
+    field = LanguageField.load(out)
+    path = scene_path or field.meta.get("scene")
+    if not path:
+        raise ValueError(f"{out}/field.json names no scene; pass the scene folder")
+    scene = load_scene(path, **field.meta.get("scene_args", {}))
+    return field, scene
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from langfield.scene import load_scene
+    from langfield.trainer import TrainConfig, evaluate_psnr, summary_line, train
+
+    scene = load_scene(args.scene, **_scene_args(args))
+    cfg = TrainConfig(
+        iterations=args.iterations,
+        seed=args.seed,
+        backend=args.backend,
+        num_gaussians=args.num_gaussians,
+        bounds=args.bounds,
+        densify=not args.no_densify,
+    )
+    field = train(scene, cfg)
+    field.meta["scene_args"] = _scene_args(args)
+    field.save(args.out)
+    test_psnr = evaluate_psnr(field, scene)
+    print(summary_line(field, test_psnr) + f"; saved to {args.out}")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    import torch
+
+    from langfield.evaluate import write_render_pngs
+
+    field, scene = _load_field_and_scene(args.out, args.scene)
+    save = Path(args.save)
+    names = scene.names(args.split)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        for name in names:
+            r = field.render(scene.camera(name))
+            write_render_pngs(save, name, r.rgb.numpy(), r.depth.numpy(), r.alpha.numpy())
+    dt = time.perf_counter() - t0
+    print(
+        f"rendered {len(names)} {args.split} views in {dt:.2f} s "
+        f"({1000 * dt / max(len(names), 1):.0f} ms/view); RGB and depth PNGs in {save}"
+    )
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from langfield.evaluate import evaluate, write_report
+
+    field, scene = _load_field_and_scene(args.out, args.scene)
+    json_path = Path(args.json)
+    pictures = json_path.parent / (json_path.stem + "_renders")
+    report = evaluate(field, scene, save_dir=pictures)
+    md = write_report(report, json_path, pictures)
+    psnr_txt = (
+        f"PSNR {report['PSNR']:.2f} dB, SSIM {report['SSIM']:.3f}"
+        if report["PSNR"] is not None
+        else "no test views"
+    )
+    print(
+        f"{len(report['views'])} test views: {psnr_txt}; {report['num_gaussians']} Gaussians, "
+        f"{report['field_bytes'] / 1e6:.1f} MB; report {json_path} and {md}"
+    )
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from langfield.bench import format_table, run_bench
+    from langfield.scene import load_scene
+    from langfield.synthetic import make_room
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene_path = args.scene or make_room(out / "scene", width=160, height=120)
+    scene = load_scene(scene_path, resolution=args.resolution)
+    json_path = Path(args.json) if args.json else out / "bench.json"
+    plot = json_path.with_suffix(".png")
+    result = run_bench(
+        scene,
+        iterations=args.iterations,
+        every=args.every,
+        num_gaussians=args.num_gaussians,
+        json_path=json_path,
+        plot_path=plot,
+    )
+    print(format_table(result))
+    b = result["backends"]
+    print(
+        f"cpu backend {b['torch']['step_ms'] / b['cpu']['step_ms']:.1f}x faster than torch per step; "
+        f"results in {json_path}" + (f" and {plot}" if result["curve"] else "")
+    )
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from langfield.evaluate import evaluate, write_report
+    from langfield.scene import load_scene
+    from langfield.synthetic import make_room
+    from langfield.trainer import TrainConfig, summary_line, train
+
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    scene_dir = make_room(out / "scene", seed=args.seed, width=args.width, height=args.height)
+    print(f"[1/4] built-in scene written to {scene_dir}")
+    scene = load_scene(scene_dir)
+    print(f"[2/4] training on {len(scene.names('train'))} views ({args.iterations} iterations)")
+    field = train(scene, TrainConfig(iterations=args.iterations, seed=args.seed))
+    field.meta["scene_args"] = {"resolution": 1.0, "views": None, "n_views": None}
+    field.save(out / "field")
+    pictures = out / "renders"
+    print(f"[3/4] rendering {len(scene.names('test'))} novel views to {pictures}")
+    report = evaluate(field, scene, save_dir=pictures)
+    md = write_report(report, out / "report.json", pictures)
+    print(f"[4/4] report: {out / 'report.json'} and {md}")
+    print(
+        summary_line(field, report["PSNR"]) + f", SSIM {report['SSIM']:.3f}; "
+        f"demo took {time.perf_counter() - t0:.0f} s; pictures in {pictures}"
+    )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="langfield", description=__doc__.split("\n")[0])
+    parser.add_argument("--version", action="version", version=f"langfield {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("train", help="train a field on a scene's training views")
+    p.add_argument("scene", help="scene folder (transforms.json, Blender pair, LLFF or COLMAP)")
+    p.add_argument("--out", required=True, help="output folder for the trained field")
+    p.add_argument("--iterations", type=int, default=6000, help="training iterations (default 6000)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto", help="rasterizer backend")
+    p.add_argument(
+        "--num-gaussians", type=int, default=None, help="initial Gaussians (default: sized to the scene)"
+    )
+    p.add_argument(
+        "--bounds", type=_bounds_arg, default=None, help="xmin,ymin,zmin,xmax,ymax,zmax to initialise in"
+    )
+    p.add_argument(
+        "--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)"
+    )
+    _add_scene_flags(p)
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("render", help="render a trained field's views to PNGs")
+    p.add_argument("out", help="folder of a trained field")
+    p.add_argument("--split", choices=["train", "test", "all"], default="test")
+    p.add_argument("--save", required=True, help="folder for <view>_rgb.png and <view>_depth.png")
+    p.add_argument("--scene", default=None, help="scene folder (default: the one recorded in field.json)")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("eval", help="score a trained field on the scene's test views")
+    p.add_argument("out", help="folder of a trained field")
+    p.add_argument("scene", nargs="?", default=None, help="scene folder (default: the one in field.json)")
+    p.add_argument("--json", required=True, help="report path; a Markdown summary is written beside it")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("bench", help="time the backends and trace quality against training time")
+    p.add_argument("--scene", default=None, help="scene folder (default: the built-in scene at 160x120)")
+    p.add_argument("--resolution", type=float, default=1.0)
+    p.add_argument(
+        "--json", default=None, help="result JSON (default OUT/bench.json); a PNG plot goes beside it"
+    )
+    p.add_argument("--out", default="bench_out", help="working folder (default bench_out)")
+    p.add_argument("--iterations", type=int, default=1500, help="training iterations of the curve (0: skip)")
+    p.add_argument("--every", type=int, default=250, help="curve checkpoint interval")
+    p.add_argument("--num-gaussians", type=int, default=20000, help="Gaussians of the backend timing")
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("demo", help="generate the built-in scene, train on 3 views, render and report")
+    p.add_argument("--out", default="demo_out")
+    p.add_argument("--iterations", type=int, default=2000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--width", type=int, default=160)
+    p.add_argument("--height", type=int, default=120)
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (FileNotFoundError, ValueError, json.JSONDecodeError) as err:
+        print(f"langfield {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"langfield {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

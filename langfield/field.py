@@ -1,0 +1,216 @@
+"""LanguageField: trained Gaussians with their neural colour field; render, save, load.
+
+On disk (FORMAT.md): ``field.safetensors`` (every tensor, no pickle), ``field.json`` (config, format
+version, bounds, training views, timings and the checksum of the tensors file) and ``gaussians.ply``
+(standard 3DGS). Files are first written under temporary names in the output folder, then renamed into
+place with ``field.json`` last; ``field.json`` names the SHA-256 of the tensors it belongs to, so a
+field interrupted half-way through a save never loads silently mixed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from torch import Tensor, nn
+
+from langfield import gaussians as G
+from langfield.camera import Camera
+from langfield.fields import ColorField
+from langfield.hashgrid import HashGridConfig
+from langfield.ply import write_gaussian_ply
+from langfield.raster import Backend, rasterize
+
+FORMAT_VERSION = 1
+HARD_DEPTH_OPACITY = 0.99  # mu in eq. 7 (the paper; DNGaussian uses 0.95)
+
+
+class Render(NamedTuple):
+    """One rendered view.
+
+    Attributes:
+        rgb: [H, W, 3] colour.
+        depth: [H, W] soft depth, sum_j alpha_j T_j ||p_j - o|| (eq. 8).
+        alpha: [H, W] accumulated opacity.
+        means2d: [N, 2] projected centres (their ``.grad`` feeds densification).
+        radii: [N] pixel radii, 0 where culled.
+        depth_hard: [H, W] hard depth (eq. 7) when asked for, else None.
+    """
+
+    rgb: Tensor
+    depth: Tensor
+    alpha: Tensor
+    means2d: Tensor
+    radii: Tensor
+    depth_hard: Tensor | None = None
+
+
+class LanguageField(nn.Module):
+    """3D Gaussians whose colour is read from a hash-grid field at each Gaussian's position.
+
+    Args:
+        splats: ParameterDict with "means" [N, 3], "log_scales" [N, 3], "quats" [N, 4],
+            "opacity_logits" [N, 1].
+        color: the colour field.
+        meta: what field.json records (config, bounds, training views, background, timings).
+    """
+
+    def __init__(self, splats: nn.ParameterDict, color: ColorField, meta: dict[str, Any]) -> None:
+        super().__init__()
+        self.splats = splats
+        self.color = color
+        self.meta = meta
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.splats["means"].shape[0])
+
+    @property
+    def background(self) -> Tensor:
+        """[3] colour behind the Gaussians (white for scenes whose images had alpha, else black)."""
+        return torch.tensor(self.meta.get("background") or [0.0, 0.0, 0.0], dtype=torch.float32)
+
+    def render(
+        self,
+        camera: Camera,
+        *,
+        backend: Backend | None = None,
+        hard_depth: bool = False,
+    ) -> Render:
+        """Renders colour, soft depth and alpha (and optionally hard depth) from ``camera``."""
+        backend = backend or self.meta.get("backend", "auto")
+        means = self.splats["means"]
+        quats = self.splats["quats"]
+        scales = G.scales(self.splats)
+        opac = G.opacities(self.splats).reshape(-1)
+        center = torch.as_tensor(camera.center, dtype=means.dtype)
+        offset = means - center
+        dist = torch.sqrt((offset * offset).sum(-1, keepdim=True) + 1e-12)
+        rgb = self.color(means, offset / dist)
+        features = torch.cat([rgb, dist], dim=-1)
+        background = torch.cat([self.background, torch.zeros(1)])
+        out = rasterize(means, quats, scales, opac, features, camera, background=background, backend=backend)
+        depth_hard = None
+        if hard_depth:
+            # Eq. 7: every opacity replaced by mu, scales and rotations detached, so the hard depth's
+            # gradient moves only the means.
+            hard = rasterize(
+                means,
+                quats.detach(),
+                scales.detach(),
+                torch.full_like(opac, HARD_DEPTH_OPACITY),
+                dist,
+                camera,
+                backend=backend,
+            )
+            depth_hard = hard.image[..., 0]
+        return Render(out.image[..., :3], out.image[..., 3], out.alpha, out.means2d, out.radii, depth_hard)
+
+    # ------------------------------------------------------------------ persistence
+
+    def state_tensors(self) -> dict[str, Tensor]:
+        tensors = {f"splats.{k}": v.detach().contiguous() for k, v in self.splats.items()}
+        tensors.update({f"color.{k}": v.detach().contiguous() for k, v in self.color.state_dict().items()})
+        return tensors
+
+    def save(self, out: str | Path) -> Path:
+        """Writes field.safetensors, field.json and gaussians.ply into ``out`` (atomically per file)."""
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        tensors_tmp = out / "field.safetensors.tmp"
+        save_file(self.state_tensors(), str(tensors_tmp))
+        digest = _sha256(tensors_tmp)
+        with torch.no_grad():
+            rgb = self.color.bake_dc(self.splats["means"]).numpy()
+            quats = G.quats_normalized(self.splats).numpy()
+        write_gaussian_ply(
+            out / "gaussians.ply",
+            self.splats["means"].detach().numpy(),
+            np.clip(rgb, 0.0, 1.0),
+            self.splats["opacity_logits"].detach().numpy(),
+            self.splats["log_scales"].detach().numpy(),
+            quats,
+        )
+        meta = dict(
+            self.meta, format_version=FORMAT_VERSION, num_gaussians=self.num_gaussians, tensors_sha256=digest
+        )
+        json_tmp = out / "field.json.tmp"
+        json_tmp.write_text(json.dumps(meta, indent=2, default=_json_default))
+        os.replace(tensors_tmp, out / "field.safetensors")
+        os.replace(json_tmp, out / "field.json")
+        return out
+
+    @classmethod
+    def load(cls, out: str | Path) -> LanguageField:
+        """Loads a field written by :meth:`save`; errors name the file that is missing or wrong."""
+        out = Path(out)
+        meta_path, tensors_path = out / "field.json", out / "field.safetensors"
+        for path in (meta_path, tensors_path):
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: missing; is {out} a folder written by `langfield train`?")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{meta_path}: not valid JSON ({err})") from err
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise ValueError(
+                f"{meta_path}: format_version {meta.get('format_version')!r}, expected {FORMAT_VERSION}"
+            )
+        if meta.get("tensors_sha256") and meta["tensors_sha256"] != _sha256(tensors_path):
+            raise ValueError(f"{tensors_path}: checksum differs from {meta_path}; the save was interrupted")
+        tensors = load_file(str(tensors_path))
+        splats = nn.ParameterDict(
+            {k.split(".", 1)[1]: nn.Parameter(v) for k, v in tensors.items() if k.startswith("splats.")}
+        )
+        color = build_color_field(meta)
+        color.load_state_dict({k.split(".", 1)[1]: v for k, v in tensors.items() if k.startswith("color.")})
+        return cls(splats, color, meta)
+
+    def field_bytes(self) -> int:
+        """Bytes of all tensors of the field."""
+        return sum(t.numel() * t.element_size() for t in self.state_tensors().values())
+
+
+def build_color_field(meta: dict[str, Any]) -> ColorField:
+    """A ColorField of the shape recorded in ``meta["color_field"]``."""
+    spec = meta["color_field"]
+    return ColorField(
+        HashGridConfig(**spec["grid"]),
+        torch.tensor(spec["center"], dtype=torch.float32),
+        torch.tensor(spec["half_extent"], dtype=torch.float32),
+        hidden=spec["hidden"],
+        n_freqs=spec["n_freqs"],
+    )
+
+
+def color_field_spec(grid: HashGridConfig, center, half_extent, hidden: int, n_freqs: int) -> dict[str, Any]:
+    return {
+        "grid": asdict(grid),
+        "center": [float(v) for v in np.asarray(center).reshape(3)],
+        "half_extent": [float(v) for v in np.broadcast_to(np.asarray(half_extent, dtype=float), (3,))],
+        "hidden": hidden,
+        "n_freqs": n_freqs,
+    }
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.ndarray, np.generic)):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot write {type(value).__name__} to field.json")

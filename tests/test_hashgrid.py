@@ -1,0 +1,161 @@
+"""Tests of the multi-resolution hash encoding."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+import torch
+
+from langfield.hashgrid import HashGrid, HashGridConfig
+
+# Tiny grid: levels of 2, 3 and 5 cells; with 2^6 rows the first two are dense, the last hashed.
+TINY = HashGridConfig(
+    n_levels=3, features_per_level=2, log2_table_size=6, base_resolution=2, finest_resolution=5
+)
+
+
+def _grid(cfg: HashGridConfig = TINY, seed: int = 0, dtype: torch.dtype = torch.float64) -> HashGrid:
+    torch.manual_seed(seed)
+    grid = HashGrid(cfg, torch.tensor([0.5, -1.0, 2.0]), torch.tensor([1.0, 2.0, 0.5])).to(dtype)
+    with torch.no_grad():  # larger than the 1e-4 init so that interpolation errors are visible
+        grid.table.uniform_(-1.0, 1.0)
+    return grid
+
+
+def _world(grid: HashGrid, u: torch.Tensor) -> torch.Tensor:
+    """World positions of unit-cube positions u [N, 3]."""
+    return grid.center + (2.0 * u - 1.0) * grid.half_extent
+
+
+def _expected_row(vertex: tuple[int, int, int], res: int, table_size: int) -> int:
+    """Instant-NGP's row of a vertex, written out independently of the module."""
+    x, y, z = vertex
+    if (res + 1) ** 3 <= table_size:
+        return x + y * (res + 1) + z * (res + 1) ** 2
+    return ((x * 1) ^ (y * 2654435761) ^ (z * 805459861)) % table_size
+
+
+def test_resolutions_grow_from_base_to_finest() -> None:
+    cfg = HashGridConfig()
+    res = cfg.resolutions()
+    assert res[0] == 16 and res[-1] == 512 and len(res) == 16
+    assert all(a < b for a, b in zip(res, res[1:], strict=False))
+    assert TINY.resolutions() == [2, 3, 5]
+
+
+def test_output_shape_and_level_kinds() -> None:
+    grid = _grid()
+    assert grid.n_dense == 2
+    assert grid.table.shape == (3, 64, 2)
+    out = grid(_world(grid, torch.rand(7, 3, dtype=torch.float64)))
+    assert out.shape == (7, 6)
+
+
+def test_gradcheck_table_and_positions() -> None:
+    grid = _grid()
+    g = torch.Generator().manual_seed(1)
+    # Interior points far from cell faces, so finite differences do not cross a kink.
+    x = _world(grid, 0.05 + 0.9 * torch.rand(6, 3, generator=g, dtype=torch.float64)).requires_grad_(True)
+
+    # A functional call lets gradcheck perturb the table as an input.
+    def functional(tab: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        return torch.func.functional_call(grid, {"table": tab}, (pos,))
+
+    tab = grid.table.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(functional, (tab, x), eps=1e-6, atol=1e-6)
+
+
+def test_dense_levels_are_collision_free() -> None:
+    cfg = HashGridConfig(n_levels=4, log2_table_size=12, base_resolution=4, finest_resolution=32)
+    grid = _grid(cfg)
+    res = cfg.resolutions()
+    assert grid.n_dense >= 2
+    for level in range(grid.n_dense):
+        r = res[level]
+        cells = torch.tensor(list(itertools.product(range(r), repeat=3)), dtype=torch.int64)  # [M, 3]
+        lo = cells.t()[:, None, :].expand(3, cfg.n_levels, -1).contiguous()
+        rows = grid._corner_rows(lo)[:, level]  # [8, M]
+        corners = torch.tensor(list(itertools.product((0, 1), repeat=3)))  # order 4 cx + 2 cy + cz
+        verts = cells[None] + corners[:, None]  # [8, M, 3]
+        vid = verts[..., 0] + verts[..., 1] * (r + 1) + verts[..., 2] * (r + 1) ** 2
+        pairs = torch.unique(torch.stack([vid.reshape(-1), rows.reshape(-1)], dim=1), dim=0)
+        # A bijection between the (r + 1)^3 vertices and rows inside this level's block.
+        assert len(pairs) == (r + 1) ** 3
+        assert len(torch.unique(pairs[:, 1])) == (r + 1) ** 3
+        assert pairs[:, 1].min() >= level * cfg.table_size
+        assert pairs[:, 1].max() < (level + 1) * cfg.table_size
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_interpolation_is_exact_at_vertices(level: int) -> None:
+    grid = _grid()
+    r = TINY.resolutions()[level]
+    verts = torch.tensor(list(itertools.product(range(r + 1), repeat=3)), dtype=torch.int64)
+    out = grid(_world(grid, verts.double() / r)).detach()
+    f = TINY.features_per_level
+    got = out[:, level * f : (level + 1) * f]
+    rows = [_expected_row(tuple(v), r, TINY.table_size) for v in verts.tolist()]
+    want = grid.table.detach()[level, rows]
+    torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+
+
+def test_interpolation_is_trilinear_inside_a_cell() -> None:
+    grid = _grid()
+    u = torch.tensor([[0.3, 0.6, 0.9]], dtype=torch.float64)
+    r = 2  # level 0: cell (0, 1, 1), fraction (0.6, 0.2, 0.8)
+    lo, frac = [0, 1, 1], [0.6, 0.2, 0.8]
+    want = torch.zeros(2, dtype=torch.float64)
+    for c in itertools.product((0, 1), repeat=3):
+        w = 1.0
+        for a in range(3):
+            w *= frac[a] if c[a] else 1.0 - frac[a]
+        v = tuple(lo[a] + c[a] for a in range(3))
+        want += w * grid.table.detach()[0, _expected_row(v, r, TINY.table_size)]
+    torch.testing.assert_close(grid(_world(grid, u))[0, :2].detach(), want)
+
+
+def test_points_outside_the_box_are_clamped_and_finite() -> None:
+    grid = _grid(dtype=torch.float32)
+    u = torch.tensor([[-3.0, 0.5, 0.5], [0.5, 7.0, 0.5], [1e6, -1e6, 2.0], [1.0, 1.0, 1.0]])
+    x = _world(grid, u).requires_grad_(True)
+    out = grid(x)
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(out, grid(_world(grid, u.clamp(0, 1))))
+    out.sum().backward()
+    assert torch.isfinite(x.grad).all()
+    assert torch.isfinite(grid.table.grad).all()
+
+
+def test_table_is_one_parameter_initialised_small() -> None:
+    grid = HashGrid(HashGridConfig(n_levels=4, log2_table_size=10), torch.zeros(3), 1.0)
+    assert [name for name, _ in grid.named_parameters()] == ["table"]
+    assert grid.table.abs().max() <= 1e-4
+
+
+def test_shared_corners_give_the_same_encoding() -> None:
+    a, b = _grid(seed=0), _grid(seed=1)
+    x = _world(a, torch.rand(5, 3, dtype=torch.float64))
+    torch.testing.assert_close(b.interpolate(*a.corners(x)), b(x))
+
+
+def test_for_scene_sizes_a_small_scene() -> None:
+    cfg = HashGridConfig.for_scene(num_points=15_000, image_pixels=160 * 120)
+    assert cfg.log2_table_size == 14
+    assert 12 <= cfg.n_levels <= 16
+    assert 256 <= cfg.finest_resolution <= 512
+    res = cfg.resolutions()
+    assert max(b / a for a, b in zip(res, res[1:], strict=False)) <= 1.35
+    assert HashGridConfig.for_scene(20_000, 160 * 120).log2_table_size == 15
+    assert HashGridConfig.for_scene(10, 16).log2_table_size == 12  # clamped below
+    big = HashGridConfig.for_scene(10**7, 4000 * 3000)
+    assert big.log2_table_size == 19 and big.finest_resolution == 512 and big.n_levels == 15
+
+
+def test_rejects_bad_input() -> None:
+    with pytest.raises(ValueError, match="half extent"):
+        HashGrid(TINY, torch.zeros(3), 0.0)
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        _grid()(torch.zeros(4, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="base_resolution"):
+        HashGridConfig(base_resolution=64, finest_resolution=32)
