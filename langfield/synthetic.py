@@ -4,7 +4,8 @@
 by ray casting with Open3D's ``RaycastingScene`` (not with langfield's rasterizer, so the ground truth
 does not share its bugs) and writes a scene folder in the layout of ``FORMAT.md``:
 
-- ``images/``: textured, Lambert-shaded RGB renders (2x2 supersampled), white background;
+- ``images/``: textured, Lambert-shaded RGBA renders (2x2 supersampled); alpha 0 where rays miss,
+  so the loader composites them on white;
 - ``depths/``: a *distorted relative disparity prior*, as a monocular network gives: 1 / z, a monotone
   power, a per-view affine scale and shift, smooth multiplicative noise and a slight blur;
 - ``language_features/``: 3-level segment maps (subpart, part, whole) and stub CLIP-like features;
@@ -144,7 +145,7 @@ def make_room(
         prior = _depth_prior(depth, np.random.default_rng([seed, _STREAM_PRIOR, view]), scale)
         feature_rng = np.random.default_rng([seed, _STREAM_FEATURES, view])
         seg, feats = _language_features(ids, prims, concepts, feature_rng)
-        cv2.imwrite(str(out / "images" / f"{cam.name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(out / "images" / f"{cam.name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGBA2BGRA))
         np.save(out / "depths" / f"{cam.name}.npy", prior)
         np.save(out / "language_features" / f"{cam.name}_s.npy", seg)
         np.save(out / "language_features" / f"{cam.name}_f.npy", feats)
@@ -426,7 +427,12 @@ def _render_depth_ids(
 def _render_rgb(
     raycaster: o3d.t.geometry.RaycastingScene, cam: Camera, prims: list[_Primitive], phases: np.ndarray
 ) -> np.ndarray:
-    """[H, W, 3] uint8 image: textured Lambert shading, white background, 2x2 supersampled."""
+    """[H, W, 4] uint8 RGBA image: textured Lambert shading, 2x2 supersampled.
+
+    Alpha is the fraction of a pixel's rays that hit geometry; colour is straight (not premultiplied),
+    so compositing on white, as the scene loader does, gives the white-background picture. Alpha tells
+    the trainer the background colour, as in the Blender NeRF data.
+    """
     rays, hits = _cast(raycaster, cam.scaled(1.0 / _SUPERSAMPLE))
     h, w = hits["t_hit"].shape
     rays, ids = rays.reshape(-1, 6), hits["geometry_ids"].reshape(-1)
@@ -445,8 +451,11 @@ def _render_rgb(
         rgb[sel] = np.asarray(prim.color) * (tex * light)[:, None]
     rgb = rgb.reshape(h, w, 3)
     s = _SUPERSAMPLE
-    rgb = rgb.reshape(h // s, s, w // s, s, 3).mean(axis=(1, 3))
-    return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+    composite = rgb.reshape(h // s, s, w // s, s, 3).mean(axis=(1, 3))  # on white
+    alpha = (ids != _MISS).reshape(h // s, s, w // s, s).mean(axis=(1, 3))[..., None]
+    straight = np.where(alpha > 0, (composite - (1.0 - alpha)) / np.maximum(alpha, 1e-6), 1.0)
+    rgba = np.concatenate([straight, alpha], axis=-1)
+    return np.clip(np.round(rgba * 255.0), 0, 255).astype(np.uint8)
 
 
 def _texture(kind: str, points: np.ndarray, phase: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import kornia
@@ -105,7 +106,7 @@ def build_field(scene: Scene, cfg: TrainConfig) -> LanguageField:
         "config": asdict(cfg),
         "backend": resolve_backend(cfg.backend),
         "bounds": bounds.tolist(),
-        "scene": str(scene.root),
+        "scene": str(Path(scene.root).resolve()),
         "resolution": scene.resolution,
         "train_views": scene.names("train"),
         "test_views": scene.names("test"),
@@ -187,6 +188,7 @@ def train(
         grad_threshold=cfg.grad_threshold,
         prune_opacity=cfg.prune_opacity,
         max_gaussians=cfg.max_gaussians or 4 * field.num_gaussians,
+        prune_scale3d=None,  # DNGaussian keeps large Gaussians; 3DGS prunes them only after opacity resets
     )
     state = strategy.initialize_state(field.splats)
     cameras = {name: scene.camera(name) for name in train_names}

@@ -80,7 +80,7 @@ def test_format_files_have_right_shapes_and_dtypes(scene: Path) -> None:
     assert names == [f"train_{i:03d}" for i in range(3)] + [f"test_{i:03d}" for i in range(5)]
     for name in names:
         arr = _arrays(scene, name)
-        assert arr["image"].shape == (H, W, 3) and arr["image"].dtype == np.uint8
+        assert arr["image"].shape == (H, W, 4) and arr["image"].dtype == np.uint8  # RGBA
         assert arr["depth"].shape == (H, W) and arr["depth"].dtype == np.float32
         assert np.isfinite(arr["depth"]).all()
         s, f = arr["s"], arr["f"]
@@ -151,6 +151,8 @@ def test_background_is_white_with_zero_depth_and_no_mask(scene: Path) -> None:
         depth = np.load(scene / "gt" / "depth" / f"{name}.npy")
         s = np.load(scene / "language_features" / f"{name}_s.npy")
         assert ((depth == 0) == (ids < 0)).all()
+        alpha = cv2.imread(str(scene / "images" / f"{name}.png"), cv2.IMREAD_UNCHANGED)[..., 3]
+        assert (alpha[ids < 0] < 255).all() and (alpha[ids >= 0] > 0).all()
         assert (s[:, ids < 0] == -1).all()
         seen_background |= bool((ids < 0).any())
     assert seen_background, "the open side of the room shows background in some view"

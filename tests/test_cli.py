@@ -1,0 +1,242 @@
+"""Tests of the ``langfield`` command (cli.py), called in-process through ``main``."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import re
+import shutil
+import subprocess
+
+import cv2
+import pytest
+
+from langfield import LanguageField, load_scene
+from langfield.cli import main
+from langfield.synthetic import make_room
+
+W, H = 64, 48
+REPORT_KEYS = {
+    "PSNR",
+    "SSIM",
+    "mIoU",
+    "mAcc",
+    "train_seconds",
+    "iterations",
+    "iterations_per_second",
+    "num_gaussians",
+    "field_bytes",
+    "backend",
+    "feature_cosine",
+    "views",
+}
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H)
+
+
+@pytest.fixture(scope="module")
+def trained(scene_dir, tmp_path_factory):
+    """(field folder, exit status, stdout) of one `langfield train` run."""
+    out = tmp_path_factory.mktemp("trained") / "out"
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(
+            ["train", str(scene_dir), "--out", str(out), "--iterations", "30", "--num-gaussians", "500"]
+        )
+    return out, code, stdout.getvalue()
+
+
+# ---------------------------------------------------------------- train / render / eval
+
+
+def test_train_writes_the_field_and_a_summary(trained) -> None:
+    out, code, stdout = trained
+    assert code == 0
+    for name in ("field.safetensors", "field.json", "gaussians.ply"):
+        assert (out / name).is_file(), name
+    lines = stdout.strip().splitlines()
+    assert len(lines) == 1
+    assert "PSNR" in lines[0] and "Gaussians" in lines[0]
+    field = LanguageField.load(out)
+    assert re.search(rf"\b{field.num_gaussians} Gaussians", lines[0])
+    assert field.meta["config"]["iterations"] == 30 and field.meta["num_gaussians_init"] == 500
+
+
+def test_render_writes_rgb_and_depth_for_every_test_view(trained, scene_dir, tmp_path, capsys) -> None:
+    out, _, _ = trained
+    save = tmp_path / "renders"
+    assert main(["render", str(out), "--split", "test", "--save", str(save)]) == 0
+    names = load_scene(scene_dir).names("test")
+    assert names
+    expected = {f"{n}_{kind}.png" for n in names for kind in ("rgb", "depth")}
+    assert {p.name for p in save.iterdir()} == expected
+    for name in expected:
+        image = cv2.imread(str(save / name), cv2.IMREAD_UNCHANGED)
+        assert image is not None and image.shape == (H, W, 3), name
+    assert f"rendered {len(names)} test views" in capsys.readouterr().out
+
+
+def test_eval_writes_the_format_report(trained, scene_dir, tmp_path, capsys) -> None:
+    out, _, _ = trained
+    report_path = tmp_path / "R.json"
+    assert main(["eval", str(out), str(scene_dir), "--json", str(report_path)]) == 0
+    report = json.loads(report_path.read_text())
+    assert set(report) == REPORT_KEYS
+    names = load_scene(scene_dir).names("test")
+    assert [v["name"] for v in report["views"]] == names
+    for view in report["views"]:
+        assert set(view) >= {"name", "PSNR", "SSIM", "queries"}
+        assert math.isfinite(view["PSNR"]) and -1 <= view["SSIM"] <= 1
+    assert report["PSNR"] == pytest.approx(sum(v["PSNR"] for v in report["views"]) / len(names))
+    assert report["iterations"] == 30
+    field = LanguageField.load(out)
+    assert report["num_gaussians"] == field.num_gaussians
+    assert report["field_bytes"] == field.field_bytes() > 0
+    assert report["mIoU"] is None and report["mAcc"] is None and report["feature_cosine"] is None
+    md = report_path.with_suffix(".md")
+    assert md.is_file() and "PSNR" in md.read_text()
+    assert "PSNR" in capsys.readouterr().out
+
+
+def test_eval_finds_the_scene_recorded_in_field_json(trained, tmp_path) -> None:
+    out, _, _ = trained
+    assert main(["eval", str(out), "--json", str(tmp_path / "r.json")]) == 0
+    assert set(json.loads((tmp_path / "r.json").read_text())) == REPORT_KEYS
+
+
+def test_field_trained_from_a_relative_scene_path_renders_from_another_folder(
+    scene_dir, tmp_path, monkeypatch
+) -> None:
+    out = tmp_path / "out"
+    monkeypatch.chdir(scene_dir.parent)
+    args = ["train", scene_dir.name, "--out", str(out), "--iterations", "1", "--num-gaussians", "300"]
+    assert main(args) == 0
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main(["render", str(out), "--save", str(tmp_path / "renders")]) == 0
+
+
+def test_train_bounds_flag_is_used(scene_dir, tmp_path) -> None:
+    out = tmp_path / "out"
+    args = ["train", str(scene_dir), "--out", str(out), "--iterations", "1", "--num-gaussians", "300"]
+    assert main([*args, "--bounds=-1,-1,0,1,1,1.5"]) == 0
+    assert LanguageField.load(out).meta["bounds"] == [[-1, -1, 0], [1, 1, 1.5]]
+
+
+def test_train_bounds_flag_accepts_a_negative_first_value_as_documented(scene_dir, tmp_path) -> None:
+    out = tmp_path / "out"
+    args = ["train", str(scene_dir), "--out", str(out), "--iterations", "1", "--num-gaussians", "300"]
+    assert main([*args, "--bounds", "-1,-1,0,1,1,1.5"]) == 0
+    assert LanguageField.load(out).meta["bounds"] == [[-1, -1, 0], [1, 1, 1.5]]
+
+
+# ---------------------------------------------------------------- bench / demo
+
+
+def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
+    out = tmp_path / "bench"
+    json_path = out / "b.json"
+    args = ["bench", "--scene", str(scene_dir), "--iterations", "20", "--every", "10"]
+    args += ["--num-gaussians", "300", "--out", str(out), "--json", str(json_path)]
+    assert main(args) == 0
+    result = json.loads(json_path.read_text())
+    assert set(result["backends"]) == {"torch", "cpu"}
+    for name, b in result["backends"].items():
+        assert b["step_ms"] > 0, name
+        assert b["image_max_abs_err"] <= 1e-4, name
+    assert result["backends"]["torch"]["image_max_abs_err"] == 0
+    assert (result["width"], result["height"]) == (W, H)
+    assert result["num_gaussians"] == 300 and result["channels"] == 13
+    assert [p["iterations"] for p in result["curve"]] == [10, 20]
+    for point in result["curve"]:
+        assert set(point) >= {"seconds", "iterations", "PSNR", "mIoU", "num_gaussians"}
+        assert point["seconds"] > 0 and math.isfinite(point["PSNR"]) and point["num_gaussians"] > 0
+    assert result["curve"][0]["seconds"] <= result["curve"][1]["seconds"]
+    assert json_path.with_suffix(".png").is_file()
+    assert "faster than torch" in capsys.readouterr().out
+
+
+def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--iterations", "20", "--width", "48", "--height", "36"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert set(report) == REPORT_KEYS and report["iterations"] == 20
+    assert (out / "report.md").is_file()
+    field = LanguageField.load(out / "field")
+    assert field.num_gaussians == report["num_gaussians"]
+    names = [v["name"] for v in report["views"]]
+    assert names
+    for name in names:
+        rgb = cv2.imread(str(out / "renders" / f"{name}_rgb.png"))
+        assert rgb is not None and rgb.shape == (36, 48, 3)
+        assert (out / "renders" / f"{name}_depth.png").is_file()
+    assert "PSNR" in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_missing_scene_folder_exits_2_naming_it(tmp_path, capsys) -> None:
+    missing = tmp_path / "no_such_scene"
+    assert main(["train", str(missing), "--out", str(tmp_path / "out"), "--iterations", "1"]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and err.count("\n") == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_scene_with_a_missing_image_exits_2_naming_it(scene_dir, tmp_path, capsys) -> None:
+    broken = tmp_path / "broken"
+    shutil.copytree(scene_dir / "images", broken / "images")
+    shutil.copy(scene_dir / "transforms.json", broken / "transforms.json")
+    (broken / "images" / "train_001.png").unlink()
+    assert main(["train", str(broken), "--out", str(tmp_path / "out"), "--iterations", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "train_001.png" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("command", ["eval", "render"])
+def test_folder_without_a_field_exits_2_naming_it(scene_dir, tmp_path, capsys, command) -> None:
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    if command == "eval":
+        args = ["eval", str(empty), str(scene_dir), "--json", str(tmp_path / "r.json")]
+    else:
+        args = ["render", str(empty), "--save", str(tmp_path / "r"), "--scene", str(scene_dir)]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert str(empty / "field.json") in err
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_bounds_with_three_numbers_is_an_argparse_error(scene_dir, tmp_path, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["train", str(scene_dir), "--out", str(tmp_path / "out"), "--bounds", "1,2,3"])
+    assert exc.value.code == 2
+    assert "--bounds" in capsys.readouterr().err
+
+
+def test_empty_bounds_box_exits_2(scene_dir, tmp_path, capsys) -> None:
+    args = ["train", str(scene_dir), "--out", str(tmp_path / "out"), "--iterations", "1"]
+    assert main([*args, "--bounds", "1,0,0,-1,1,1"]) == 2
+    assert "bounds" in capsys.readouterr().err
+
+
+def test_unknown_command_is_an_argparse_error(capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["fly"])
+    assert exc.value.code == 2
+
+
+@pytest.mark.skipif(shutil.which("langfield") is None, reason="console script not installed")
+def test_console_script_smoke() -> None:
+    exe = shutil.which("langfield")
+    done = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0
+    for command in ("train", "render", "eval", "bench", "demo"):
+        assert command in done.stdout

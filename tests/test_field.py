@@ -1,0 +1,247 @@
+"""Tests of LanguageField (field.py): save / load, gaussians.ply, atomic writes and render()."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+
+import numpy as np
+import pytest
+import torch
+from safetensors import safe_open
+from safetensors.torch import load_file
+
+from langfield import Camera, LanguageField, TrainConfig, load_scene, train
+from langfield.field import FORMAT_VERSION
+from langfield.ply import SH_C0, read_gaussian_ply
+from langfield.synthetic import make_room
+
+N = 500
+FIELD_FILES = ("field.safetensors", "field.json", "gaussians.ply")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=64, height=48))
+
+
+@pytest.fixture(scope="module")
+def field(scene) -> LanguageField:
+    return train(scene, TrainConfig(iterations=20, num_gaussians=N, seed=0), progress=False)
+
+
+@pytest.fixture
+def saved(field, tmp_path):
+    return field.save(tmp_path / "out")
+
+
+def _json_normalised(value):
+    return json.loads(json.dumps(value))
+
+
+# ---------------------------------------------------------------- round trip
+
+
+def test_round_trip_gives_identical_tensors(field, saved) -> None:
+    loaded = LanguageField.load(saved)
+    before, after = field.state_tensors(), loaded.state_tensors()
+    assert before.keys() == after.keys()
+    for key in before:
+        assert after[key].dtype == before[key].dtype, key
+        assert torch.equal(after[key], before[key]), key
+    assert loaded.num_gaussians == field.num_gaussians == N
+    assert all(isinstance(p, torch.nn.Parameter) for p in loaded.splats.values())
+
+
+def test_round_trip_gives_identical_render(field, saved, scene) -> None:
+    loaded = LanguageField.load(saved)
+    cam = scene.camera(scene.names("test")[0])
+    with torch.no_grad():
+        a, b = field.render(cam), loaded.render(cam)
+    for name in ("rgb", "depth", "alpha"):
+        diff = (getattr(a, name) - getattr(b, name)).abs().max().item()
+        assert diff < 1e-6, name
+
+
+def test_round_trip_preserves_meta(field, saved) -> None:
+    loaded = LanguageField.load(saved)
+    expected = _json_normalised(field.meta)
+    for key, value in expected.items():
+        assert loaded.meta[key] == value, key
+    assert loaded.meta["format_version"] == FORMAT_VERSION
+    assert loaded.meta["num_gaussians"] == N
+
+
+def test_resaving_a_loaded_field_writes_the_same_tensors(saved, tmp_path) -> None:
+    again = LanguageField.load(saved).save(tmp_path / "again")
+    first = json.loads((saved / "field.json").read_text())
+    second = json.loads((again / "field.json").read_text())
+    assert first["tensors_sha256"] == second["tensors_sha256"]
+
+
+def test_field_json_records_the_contract_keys(field, saved, scene) -> None:
+    meta = json.loads((saved / "field.json").read_text())
+    for key in ("format_version", "num_gaussians", "config", "bounds", "train_views", "color_field"):
+        assert key in meta, key
+    assert meta["format_version"] == FORMAT_VERSION
+    assert meta["num_gaussians"] == N
+    assert meta["config"]["num_gaussians"] == N and meta["config"]["iterations"] == 20
+    assert np.asarray(meta["bounds"]).shape == (2, 3)
+    assert meta["train_views"] == scene.names("train")
+    assert set(meta["color_field"]) >= {"grid", "center", "half_extent", "hidden", "n_freqs"}
+
+
+def test_tensors_file_is_plain_safetensors(field, saved) -> None:
+    path = saved / "field.safetensors"
+    raw = path.read_bytes()
+    # safetensors: u64 little-endian header length, then a JSON header; no pickle, no zip.
+    (header_len,) = struct.unpack("<Q", raw[:8])
+    header = json.loads(raw[8 : 8 + header_len])
+    assert "splats.means" in header
+    assert not raw.startswith(b"PK") and not raw.startswith(b"\x80")
+    with safe_open(str(path), framework="pt") as f:
+        assert set(f.keys()) == set(field.state_tensors())
+    tensors = load_file(str(path))
+    assert torch.equal(tensors["splats.means"], field.splats["means"].detach())
+
+
+# ---------------------------------------------------------------- gaussians.ply
+
+
+def test_ply_has_the_3dgs_properties(saved) -> None:
+    ply = read_gaussian_ply(saved / "gaussians.ply")
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    names += [f"f_rest_{i}" for i in range(45)]
+    names += [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+    for name in names:
+        assert name in ply, name
+        assert ply[name].shape == (N,), name
+        assert np.isfinite(ply[name]).all(), name
+
+
+def test_ply_values_match_the_field(field, saved) -> None:
+    ply = read_gaussian_ply(saved / "gaussians.ply")
+    means = np.stack([ply["x"], ply["y"], ply["z"]], axis=1)
+    np.testing.assert_array_equal(means, field.splats["means"].detach().numpy())
+    log_scales = np.stack([ply[f"scale_{i}"] for i in range(3)], axis=1)
+    np.testing.assert_array_equal(log_scales, field.splats["log_scales"].detach().numpy())
+    np.testing.assert_array_equal(ply["opacity"], field.splats["opacity_logits"].detach().numpy()[:, 0])
+    rgb = 0.5 + SH_C0 * np.stack([ply[f"f_dc_{i}"] for i in range(3)], axis=1)
+    assert rgb.min() >= -1e-5 and rgb.max() <= 1 + 1e-5
+    with torch.no_grad():
+        baked = field.color.bake_dc(field.splats["means"]).numpy()
+    np.testing.assert_allclose(rgb, baked, atol=1e-5)
+    assert all((ply[f"f_rest_{i}"] == 0).all() for i in range(45))
+    quats = np.stack([ply[f"rot_{i}"] for i in range(4)], axis=1)
+    np.testing.assert_allclose(np.linalg.norm(quats, axis=1), 1.0, atol=1e-5)
+
+
+# ---------------------------------------------------------------- atomic, consistent writes
+
+
+@pytest.mark.parametrize("damage", ["flip_byte", "truncate"])
+def test_corrupt_tensors_file_is_rejected_naming_it(saved, damage) -> None:
+    path = saved / "field.safetensors"
+    raw = bytearray(path.read_bytes())
+    if damage == "flip_byte":
+        raw[-5] ^= 0xFF
+    else:
+        raw = raw[: len(raw) // 2]
+    path.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="field.safetensors") as err:
+        LanguageField.load(saved)
+    assert "checksum" in str(err.value)
+
+
+def test_tensors_of_another_save_are_rejected(field, saved, scene, tmp_path) -> None:
+    # What an interrupted save leaves behind: new tensors renamed into place, the old field.json.
+    other = train(scene, TrainConfig(iterations=0, num_gaussians=300, seed=1), progress=False)
+    other.save(tmp_path / "other")
+    os.replace(tmp_path / "other" / "field.safetensors", saved / "field.safetensors")
+    with pytest.raises(ValueError, match="field.safetensors"):
+        LanguageField.load(saved)
+
+
+@pytest.mark.parametrize("missing", ["field.json", "field.safetensors"])
+def test_missing_file_raises_file_not_found_naming_it(saved, missing) -> None:
+    (saved / missing).unlink()
+    with pytest.raises(FileNotFoundError, match=missing):
+        LanguageField.load(saved)
+
+
+def test_malformed_field_json_raises_value_error_naming_it(saved) -> None:
+    (saved / "field.json").write_text("{ not json")
+    with pytest.raises(ValueError, match="field.json"):
+        LanguageField.load(saved)
+
+
+def test_unknown_format_version_is_rejected(saved) -> None:
+    meta = json.loads((saved / "field.json").read_text())
+    meta["format_version"] = FORMAT_VERSION + 1
+    (saved / "field.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="format_version"):
+        LanguageField.load(saved)
+
+
+def test_save_over_an_older_field_overwrites_it_cleanly(field, scene, tmp_path) -> None:
+    out = tmp_path / "out"
+    older = train(scene, TrainConfig(iterations=0, num_gaussians=300, seed=1), progress=False)
+    older.save(out)
+    (out / "field.json.tmp").write_text("left over by an interrupted run")
+    field.save(out)
+    loaded = LanguageField.load(out)
+    assert loaded.num_gaussians == N
+    assert torch.equal(loaded.splats["means"], field.splats["means"].detach())
+    assert read_gaussian_ply(out / "gaussians.ply")["x"].shape == (N,)
+    assert sorted(p.name for p in out.iterdir()) == sorted(FIELD_FILES)
+
+
+def test_save_leaves_no_temporary_files(saved) -> None:
+    assert sorted(p.name for p in saved.iterdir()) == sorted(FIELD_FILES)
+    assert not list(saved.glob("*.tmp"))
+
+
+# ---------------------------------------------------------------- render()
+
+
+def test_render_shapes_and_ranges(field, scene) -> None:
+    cam = scene.camera(scene.names("test")[0])
+    with torch.no_grad():
+        r = field.render(cam)
+    h, w = cam.height, cam.width
+    assert r.rgb.shape == (h, w, 3) and r.depth.shape == (h, w) and r.alpha.shape == (h, w)
+    assert r.depth_hard is None
+    for t in (r.rgb, r.depth, r.alpha):
+        assert torch.isfinite(t).all()
+    assert r.rgb.min() >= -1e-5 and r.rgb.max() <= 1 + 1e-5
+    assert r.alpha.min() >= -1e-6 and r.alpha.max() <= 1 + 1e-6
+    assert r.depth.min() >= 0
+    assert r.alpha.max() > 0.1  # the scene's own views see the Gaussians
+    assert r.means2d.shape == (N, 2) and r.radii.shape[0] == N
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_hard_depth_gradient_moves_only_the_means(field, scene, backend) -> None:
+    cam = scene.camera(scene.names("train")[0])
+    field.zero_grad(set_to_none=True)
+    r = field.render(cam, backend=backend, hard_depth=True)
+    assert r.depth_hard is not None and r.depth_hard.shape == (cam.height, cam.width)
+    assert torch.isfinite(r.depth_hard).all() and r.depth_hard.min() >= 0
+    r.depth_hard.sum().backward()
+    grads = {k: p.grad for k, p in field.splats.items()}
+    field.zero_grad(set_to_none=True)
+    assert grads["means"] is not None
+    assert torch.isfinite(grads["means"]).all() and grads["means"].abs().sum() > 0
+    # Eq. 7: scales and rotations detached, opacity the constant mu.
+    for name in ("log_scales", "quats", "opacity_logits"):
+        assert grads[name] is None or not grads[name].any(), name
+
+
+def test_render_from_a_free_camera(field) -> None:
+    cam = Camera.look_at(eye=(2, -2, 1.5), target=(0, 0, 0.5), width=40, height=30)
+    with torch.no_grad():
+        r = field.render(cam)
+    assert r.rgb.shape == (30, 40, 3) and r.depth.shape == (30, 40) and r.alpha.shape == (30, 40)
+    assert torch.isfinite(r.rgb).all() and torch.isfinite(r.depth).all()
+    assert r.alpha.max() > 0
