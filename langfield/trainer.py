@@ -14,7 +14,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import kornia
 import numpy as np
 import torch
 from torch import Tensor
@@ -27,7 +26,7 @@ from langfield.hashgrid import HashGridConfig
 from langfield.raster import resolve_backend
 from langfield.scene import Scene
 from langfield.strategy import DensifyStrategy
-from querying.metrics import psnr
+from querying.metrics import psnr, ssim_map
 
 
 @dataclass(frozen=True)
@@ -64,10 +63,7 @@ Callback = Callable[[int, float, LanguageField], None]
 def color_loss(rendered: Tensor, target: Tensor, lambda_dssim: float = 0.2) -> Tensor:
     """L_C = (1 - lambda) L1 + lambda (1 - SSIM) on images [H, W, 3]."""
     l1 = (rendered - target).abs().mean()
-    p, t = rendered.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]
-    window = min(11, p.shape[-1], p.shape[-2])
-    window = window if window % 2 else window - 1
-    d_ssim = 1.0 - kornia.metrics.ssim(p, t, max(window, 1)).mean()
+    d_ssim = 1.0 - ssim_map(rendered, target).mean()
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * d_ssim
 
 
@@ -223,7 +219,7 @@ def train(
         train_seconds += time.perf_counter() - t0
         bar.update(1)
         if step % 10 == 0:
-            bar.set_postfix(loss=f"{loss.item():.4f}", gaussians=field.num_gaussians)
+            bar.set_postfix(loss=f"{loss.item():.4f}", gaussians=str(field.num_gaussians))
         if (
             callback is not None
             and callback_every

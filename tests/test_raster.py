@@ -189,3 +189,29 @@ def test_tile_with_more_gaussians_than_typical_cap(cam):
         torch.rand(n, 3, generator=g),
     ]
     assert_backends_agree(params, cam)
+
+
+def test_backends_agree_with_geometry_detached_for_later_channels(small_camera):
+    params = random_gaussians(200, 6, seed=8)
+    results = {}
+    for backend in ("torch", "cpu"):
+        leaves = [p.detach().clone().requires_grad_(True) for p in params]
+        out = rasterize(*leaves, small_camera, backend=backend, geometry_channels=2)
+        g = torch.Generator().manual_seed(2)
+        (out.image * torch.randn(out.image.shape, generator=g)).sum().backward()
+        results[backend] = [p.grad for p in leaves]
+    for name, a, b in zip(NAMES, results["torch"], results["cpu"], strict=True):
+        assert ((a - b).norm() / a.norm()).item() <= 1e-3, name
+
+
+def test_detached_channels_pass_no_gradient_to_geometry(small_camera):
+    # A loss on channels 2.. only (the language latents) must leave the Gaussians' geometry untouched.
+    params = random_gaussians(200, 6, seed=9)
+    for backend in ("torch", "cpu"):
+        leaves = [p.detach().clone().requires_grad_(True) for p in params]
+        out = rasterize(*leaves, small_camera, backend=backend, geometry_channels=2)
+        out.image[..., 2:].square().sum().backward()
+        for name, grad in zip(NAMES[:4], leaves[:4], strict=True):
+            assert grad.grad is None or torch.count_nonzero(grad.grad) == 0, f"{backend}: {name}"
+        assert torch.count_nonzero(leaves[4].grad[:, 2:]) > 0
+        assert torch.count_nonzero(leaves[4].grad[:, :2]) == 0

@@ -54,6 +54,7 @@ def composite(
     height: int,
     background: Tensor | None = None,
     backend: Backend = "auto",
+    geometry_channels: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Composites already projected Gaussians: returns image [H, W, C] and alpha [H, W]."""
     n_ch = features.shape[1]
@@ -71,7 +72,16 @@ def composite(
 
         fn = rasterize_cpu
     return fn(
-        projected.means2d, projected.conics, opacities, features, offsets, ids, width, height, background
+        projected.means2d,
+        projected.conics,
+        opacities,
+        features,
+        offsets,
+        ids,
+        width,
+        height,
+        background,
+        geometry_channels,
     )
 
 
@@ -86,6 +96,7 @@ def rasterize(
     background: Tensor | None = None,
     backend: Backend = "auto",
     near: float = NEAR_PLANE,
+    geometry_channels: int | None = None,
 ) -> RasterOutput:
     """Renders N Gaussians carrying C feature channels from ``camera``.
 
@@ -99,6 +110,9 @@ def rasterize(
         background: [C] value behind the Gaussians; zeros if None.
         backend: "auto", "torch" or "cpu".
         near: near plane; Gaussians closer than this (or behind the camera) are culled.
+        geometry_channels: only the first this many channels pass gradient to the geometry (means,
+            rotations, scales, opacities); the rest train only their own feature values, in the same
+            pass. None: every channel does. The language loss uses this (L_LF detaches geometry).
 
     Returns:
         :class:`RasterOutput`.
@@ -116,7 +130,14 @@ def rasterize(
     if projected.means2d.requires_grad:
         projected.means2d.retain_grad()
     image, alpha = composite(
-        projected, opacities, features, camera.width, camera.height, background=background, backend=backend
+        projected,
+        opacities,
+        features,
+        camera.width,
+        camera.height,
+        background=background,
+        backend=backend,
+        geometry_channels=geometry_channels,
     )
     return RasterOutput(image, alpha, projected.means2d, projected.radii)
 

@@ -160,6 +160,7 @@ def _backward(
     g_conics,
     g_opac,
     g_colors,
+    n_geo,
 ):
     n_tiles = offsets.shape[0] - 1
     n_ch = colors.shape[1]
@@ -234,7 +235,8 @@ def _backward(
                         prefix[ch, p] += w * col
                         # dC/d alpha_i = c_i T_i - (C - prefix_i) / (1 - alpha_i)
                         d = col * trans[p] - (total[ch, p] - prefix[ch, p]) * inv_1m[p]
-                        d_alpha[p] += g_c[ch, p] * d if w != _ZERO else _ZERO
+                        # Channels from n_geo on pass no gradient to the geometry.
+                        d_alpha[p] += g_c[ch, p] * d if (w != _ZERO and ch < n_geo) else _ZERO
                     g_colors[k, ch] += s
                 gm_x = _ZERO
                 gm_y = _ZERO
@@ -276,7 +278,7 @@ def _q_max(opacities: np.ndarray) -> np.ndarray:
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(
-        ctx, means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height
+        ctx, means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo
     ):
         m = means2d.detach().float().contiguous().numpy()
         cn = conics.detach().float().contiguous().numpy()
@@ -296,6 +298,7 @@ class _RasterizeCPU(torch.autograd.Function):
         ctx.size = (width, height, tiles_x)
         ctx.gaussian_ids = gaussian_ids
         ctx.n = means2d.shape[0]
+        ctx.n_geo = n_geo
         return torch.from_numpy(out), torch.from_numpy(1.0 - t_final)
 
     @staticmethod
@@ -335,6 +338,7 @@ class _RasterizeCPU(torch.autograd.Function):
             g_cn,
             g_op,
             g_col,
+            ctx.n_geo,
         )
         idx = ctx.gaussian_ids
         n = ctx.n
@@ -347,6 +351,7 @@ class _RasterizeCPU(torch.autograd.Function):
             scatter(g_cn, (n, 3)),
             scatter(g_op, (n,)),
             scatter(g_col, (n, n_ch)),
+            None,
             None,
             None,
             None,
@@ -365,10 +370,12 @@ def rasterize_cpu(
     width: int,
     height: int,
     background: Tensor,
+    geometry_channels: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Same contract as :func:`langfield.raster.torch_backend.rasterize_torch`, on numba kernels."""
+    n_geo = colors.shape[1] if geometry_channels is None else int(geometry_channels)
     return _RasterizeCPU.apply(
-        means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height
+        means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo
     )
 
 

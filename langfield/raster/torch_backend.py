@@ -25,13 +25,20 @@ T_MIN = 1e-4
 
 
 def composite_tile(
-    pixels: Tensor, means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
+    pixels: Tensor,
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    geometry_channels: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Front-to-back compositing of G depth-sorted Gaussians over P pixels.
 
     Args:
         pixels: [P, 2] pixel-centre coordinates.
         means2d: [G, 2], conics: [G, 3], opacities: [G], colors: [G, C], nearest Gaussian first.
+        geometry_channels: channels from this index on see the blending weights detached, so their
+            loss trains only their own values, never the geometry (None: all channels do).
 
     Returns:
         color: [P, C] accumulated colour without background; t_final: [P] remaining transmittance.
@@ -48,7 +55,9 @@ def composite_tile(
     alpha = alpha * keep
     trans_after = torch.cumprod(1.0 - alpha, dim=1)
     trans_before = torch.cat([torch.ones_like(trans_after[:, :1]), trans_after[:, :-1]], dim=1)
-    color = (alpha * trans_before) @ colors
+    weights = alpha * trans_before
+    k = colors.shape[1] if geometry_channels is None else geometry_channels
+    color = torch.cat([weights @ colors[:, :k], weights.detach() @ colors[:, k:]], dim=1)
     return color, trans_after[:, -1]
 
 
@@ -62,6 +71,7 @@ def rasterize_torch(
     width: int,
     height: int,
     background: Tensor,
+    geometry_channels: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Composites binned Gaussians into an image.
 
@@ -69,6 +79,8 @@ def rasterize_torch(
         means2d: [N, 2], conics: [N, 3], opacities: [N], colors: [N, C].
         tile_offsets, gaussian_ids: from :func:`langfield.raster.binning.bin_gaussians`.
         background: [C] colour behind everything.
+        geometry_channels: channels from this index on pass no gradient to the geometry (means2d,
+            conics, opacities); None: all channels do.
 
     Returns:
         image: [H, W, C] and alpha: [H, W] (= 1 - final transmittance).
@@ -91,7 +103,9 @@ def rasterize_torch(
         )
         pixels = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)
         ids = gaussian_ids[start:end]
-        color, t_final = composite_tile(pixels, means2d[ids], conics[ids], opacities[ids], colors[ids])
+        color, t_final = composite_tile(
+            pixels, means2d[ids], conics[ids], opacities[ids], colors[ids], geometry_channels
+        )
         color = color + t_final[:, None] * background[None, :]
         image[y0:y1, x0:x1] = color.reshape(y1 - y0, x1 - x0, n_channels)
         alpha[y0:y1, x0:x1] = (1.0 - t_final).reshape(y1 - y0, x1 - x0)
