@@ -68,6 +68,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene, **_scene_args(args))
     cfg = TrainConfig(
+        language=False if args.no_language else None,
+        language_features=args.language_features,
         iterations=args.iterations,
         seed=args.seed,
         backend=args.backend,
@@ -198,6 +200,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)"
+    )
+    p.add_argument(
+        "--language-features",
+        choices=["hashgrid", "per-gaussian"],
+        default="hashgrid",
+        help="language latents from hash grids (SOVGaussian) or one per Gaussian (LangSplat baseline)",
+    )
+    p.add_argument(
+        "--no-language",
+        action="store_true",
+        help="train colour only, even if the scene has language_features/ (default: language when it has)",
     )
     _add_scene_flags(p)
     p.set_defaults(func=cmd_train)

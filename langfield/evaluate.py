@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 import torch
 
+from encoders.cache import read_feature_cache
+from encoders.protocols import LEVELS
 from langfield.field import LanguageField
 from langfield.scene import Scene
 from querying.metrics import psnr, ssim
@@ -34,11 +36,14 @@ def evaluate(
         The FORMAT.md report as a dict.
     """
     views: list[dict[str, Any]] = []
+    cosines: list[list[float]] = []
     save = Path(save_dir) if save_dir is not None else None
     with torch.no_grad():
         for name in scene.names(split):
             out = field.render(scene.camera(name))
             target = torch.from_numpy(scene.image(name))
+            if out.latents is not None and scene.feature_paths(name) is not None:
+                cosines.append(feature_cosine(field, out.latents, scene, name))
             views.append(
                 {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target), "queries": {}}
             )
@@ -60,9 +65,47 @@ def evaluate(
         "num_gaussians": field.num_gaussians,
         "field_bytes": field.field_bytes(),
         "backend": m.get("backend"),
-        "feature_cosine": None,
+        "feature_cosine": _level_means(cosines),
         "views": views,
     }
+
+
+def _level_means(rows: list[list[float]]) -> dict[str, float | None] | None:
+    """Mean of each level over views, ignoring views without masks at that level (None if none has)."""
+    if not rows:
+        return None
+    table = np.asarray(rows, dtype=np.float64)
+    means = {}
+    for i, level in enumerate(LEVELS):
+        col = table[:, i][np.isfinite(table[:, i])]
+        means[level] = float(col.mean()) if col.size else None
+    return means
+
+
+def feature_cosine(field: LanguageField, latents: torch.Tensor, scene: Scene, name: str) -> list[float]:
+    """Per level, the mean cosine between decoded rendered latents and the view's mask features.
+
+    Args:
+        latents: [3, H, W, 3] rendered latents of view ``name``.
+
+    Returns:
+        Three numbers (subpart, part, whole), averaged over the pixels that have a mask at that level;
+        NaN for a level without masks.
+    """
+    cam = scene.camera(name)
+    cache = read_feature_cache(*scene.feature_paths(name), expected_hw=(cam.height, cam.width))
+    decoded = field.decode(latents)  # [3, H, W, 512]
+    features = torch.from_numpy(cache.features)
+    result = []
+    for level in range(len(LEVELS)):
+        seg = torch.from_numpy(cache.segments[level].astype(np.int64))
+        valid = seg >= 0
+        if not valid.any():
+            result.append(float("nan"))
+            continue
+        cos = (decoded[level] * features[seg.clamp_min(0)]).sum(-1)
+        result.append(float(cos[valid].mean()))
+    return result
 
 
 def depth_to_png(depth: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarray:

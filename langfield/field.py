@@ -21,10 +21,12 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
+from encoders.autoencoder import AutoencoderConfig, LanguageDecoder, decoder_state, load_decoder
 from langfield import gaussians as G
 from langfield.camera import Camera
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
+from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
 from langfield.ply import write_gaussian_ply
 from langfield.raster import Backend, rasterize
 
@@ -42,6 +44,8 @@ class Render(NamedTuple):
         means2d: [N, 2] projected centres (their ``.grad`` feeds densification).
         radii: [N] pixel radii, 0 where culled.
         depth_hard: [H, W] hard depth (eq. 7) when asked for, else None.
+        latents: [3, H, W, 3] rendered language latents (level, row, column, latent) when the field has
+            language, else None; :meth:`LanguageField.decode` maps them to CLIP space.
     """
 
     rgb: Tensor
@@ -50,23 +54,56 @@ class Render(NamedTuple):
     means2d: Tensor
     radii: Tensor
     depth_hard: Tensor | None = None
+    latents: Tensor | None = None
 
 
 class LanguageField(nn.Module):
-    """3D Gaussians whose colour is read from a hash-grid field at each Gaussian's position.
+    """3D Gaussians whose colour and language latents are read from hash-grid fields at their centres.
 
     Args:
         splats: ParameterDict with "means" [N, 3], "log_scales" [N, 3], "quats" [N, 4],
-            "opacity_logits" [N, 1].
+            "opacity_logits" [N, 1], and "lang" [N, 9] for the per-Gaussian language baseline.
         color: the colour field.
-        meta: what field.json records (config, bounds, training views, background, timings).
+        meta: what field.json records (config, bounds, training views, background, timings, language).
+        language: the hash-grid language heads, if the field has hash-grid language features.
+        decoder: the scene's autoencoder decoder (latent -> 512-d CLIP space), if the field has language.
     """
 
-    def __init__(self, splats: nn.ParameterDict, color: ColorField, meta: dict[str, Any]) -> None:
+    def __init__(
+        self,
+        splats: nn.ParameterDict,
+        color: ColorField,
+        meta: dict[str, Any],
+        language: LanguageHeads | None = None,
+        decoder: LanguageDecoder | None = None,
+    ) -> None:
         super().__init__()
         self.splats = splats
         self.color = color
         self.meta = meta
+        self.language = language
+        self.decoder = decoder
+
+    @property
+    def has_language(self) -> bool:
+        return self.language is not None or "lang" in self.splats
+
+    def gaussian_latents(self) -> Tensor | None:
+        """[N, 3, 3] language latents of every Gaussian (level, latent), or None without language.
+
+        The hash grid reads detached positions: L_LF must not move the Gaussians (DESIGN.md).
+        """
+        if "lang" in self.splats:
+            return self.splats["lang"].reshape(-1, N_LEVELS, LATENT_DIM)
+        if self.language is not None:
+            return self.language(self.splats["means"].detach())
+        return None
+
+    def decode(self, latents: Tensor) -> Tensor:
+        """Maps latents [..., 3] to unit 512-d CLIP features [..., 512] with the scene's decoder."""
+        if self.decoder is None:
+            raise ValueError("this field has no language decoder (it was trained without language features)")
+        return self.decoder.decode(latents)
 
     @property
     def num_gaussians(self) -> int:
@@ -94,9 +131,25 @@ class LanguageField(nn.Module):
         offset = means - center
         dist = torch.sqrt((offset * offset).sum(-1, keepdim=True) + 1e-12)
         rgb = self.color(means, offset / dist)
-        features = torch.cat([rgb, dist], dim=-1)
-        background = torch.cat([self.background, torch.zeros(1)])
-        out = rasterize(means, quats, scales, opac, features, camera, background=background, backend=backend)
+        features = [rgb, dist]
+        latents = self.gaussian_latents()
+        if latents is not None:
+            features.append(latents.reshape(-1, LANGUAGE_CHANNELS))
+        features = torch.cat(features, dim=-1)
+        background = torch.cat([self.background, torch.zeros(features.shape[1] - 3)])
+        # Channels past rgb + distance (the latents) pass no gradient to the geometry: L_LF trains only
+        # the language features, in the same rasterization pass.
+        out = rasterize(
+            means,
+            quats,
+            scales,
+            opac,
+            features,
+            camera,
+            background=background,
+            backend=backend,
+            geometry_channels=4,
+        )
         depth_hard = None
         if hard_depth:
             # Eq. 7: every opacity replaced by mu, scales and rotations detached, so the hard depth's
@@ -111,13 +164,31 @@ class LanguageField(nn.Module):
                 backend=backend,
             )
             depth_hard = hard.image[..., 0]
-        return Render(out.image[..., :3], out.image[..., 3], out.alpha, out.means2d, out.radii, depth_hard)
+        rendered_latents = None
+        if latents is not None:
+            h, w = out.image.shape[:2]
+            rendered_latents = out.image[..., 4:].reshape(h, w, N_LEVELS, LATENT_DIM).permute(2, 0, 1, 3)
+        return Render(
+            out.image[..., :3],
+            out.image[..., 3],
+            out.alpha,
+            out.means2d,
+            out.radii,
+            depth_hard,
+            rendered_latents,
+        )
 
     # ------------------------------------------------------------------ persistence
 
     def state_tensors(self) -> dict[str, Tensor]:
         tensors = {f"splats.{k}": v.detach().contiguous() for k, v in self.splats.items()}
         tensors.update({f"color.{k}": v.detach().contiguous() for k, v in self.color.state_dict().items()})
+        if self.language is not None:
+            tensors.update(
+                {f"language.{k}": v.detach().contiguous() for k, v in self.language.state_dict().items()}
+            )
+        if self.decoder is not None:
+            tensors.update({f"decoder.{k}": v for k, v in decoder_state(self.decoder).items()})
         return tensors
 
     def save(self, out: str | Path) -> Path:
@@ -170,8 +241,15 @@ class LanguageField(nn.Module):
             {k.split(".", 1)[1]: nn.Parameter(v) for k, v in tensors.items() if k.startswith("splats.")}
         )
         color = build_color_field(meta)
-        color.load_state_dict({k.split(".", 1)[1]: v for k, v in tensors.items() if k.startswith("color.")})
-        return cls(splats, color, meta)
+        color.load_state_dict(_prefixed(tensors, "color"))
+        language = decoder = None
+        spec = meta.get("language")
+        if spec:
+            if spec["features"] == "hashgrid":
+                language = build_language_heads(meta)
+                language.load_state_dict(_prefixed(tensors, "language"))
+            decoder = load_decoder(_prefixed(tensors, "decoder"), autoencoder_config(spec))
+        return cls(splats, color, meta, language, decoder)
 
     def field_bytes(self) -> int:
         """Bytes of all tensors of the field."""
@@ -188,6 +266,28 @@ def build_color_field(meta: dict[str, Any]) -> ColorField:
         hidden=spec["hidden"],
         n_freqs=spec["n_freqs"],
     )
+
+
+def build_language_heads(meta: dict[str, Any]) -> LanguageHeads:
+    """Hash-grid language heads of the shape recorded in ``meta`` (they share the colour grid's box)."""
+    spec, box = meta["language"], meta["color_field"]
+    return LanguageHeads(
+        HashGridConfig(**spec["grid"]),
+        torch.tensor(box["center"], dtype=torch.float32),
+        torch.tensor(box["half_extent"], dtype=torch.float32),
+        hidden=spec["hidden"],
+    )
+
+
+def autoencoder_config(spec: dict[str, Any]) -> AutoencoderConfig:
+    """The AutoencoderConfig recorded in field.json (JSON lists back to tuples)."""
+    return AutoencoderConfig(
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in spec["autoencoder"].items()}
+    )
+
+
+def _prefixed(tensors: dict[str, Tensor], prefix: str) -> dict[str, Tensor]:
+    return {k.split(".", 1)[1]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
 
 
 def color_field_spec(grid: HashGridConfig, center, half_extent, hidden: int, n_freqs: int) -> dict[str, Any]:

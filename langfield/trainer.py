@@ -12,17 +12,26 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from encoders.autoencoder import (
+    AutoencoderConfig,
+    LanguageAutoencoder,
+    decoder_state,
+    load_decoder,
+    train_autoencoder,
+)
+from encoders.cache import read_feature_cache
 from langfield import gaussians as G
 from langfield.field import LanguageField, color_field_spec
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
+from langfield.language import LANGUAGE_CHANNELS, N_LEVELS, LanguageHeads, language_loss
 from langfield.raster import resolve_backend
 from langfield.scene import Scene
 from langfield.strategy import DensifyStrategy
@@ -55,6 +64,12 @@ class TrainConfig:
     color_freqs: int = 4
     grid_lr: float = 5e-3
     mlp_lr: float = 5e-4
+    language: bool | None = None  # None: when every training view has a feature cache
+    language_features: Literal["hashgrid", "per-gaussian"] = "hashgrid"
+    lambda_language: float = 1.0
+    language_hidden: int = 64
+    per_gaussian_language_lr: float = 2.5e-3  # LangSplat's language_feature_lr
+    autoencoder_iterations: int = 300
 
 
 Callback = Callable[[int, float, LanguageField], None]
@@ -77,8 +92,60 @@ def scene_bounds(scene: Scene, cfg: TrainConfig) -> np.ndarray:
     return bounds
 
 
-def build_field(scene: Scene, cfg: TrainConfig) -> LanguageField:
-    """An untrained field sized to ``scene``: random Gaussians in its bounds and a colour field."""
+@dataclass
+class LanguageTargets:
+    """What L_LF compares with, per training view: autoencoded mask features at every pixel.
+
+    Attributes:
+        latents: view name -> [3, H, W, 3] latent of the mask covering each pixel at each level.
+        valid: view name -> [3, H, W] bool, pixels that have a mask at that level.
+        autoencoder: the scene's autoencoder (its decoder is saved with the field).
+        stats: the autoencoder's training figures.
+    """
+
+    latents: dict[str, Tensor]
+    valid: dict[str, Tensor]
+    autoencoder: LanguageAutoencoder
+    stats: dict[str, float]
+    config: AutoencoderConfig
+
+
+def language_targets(scene: Scene, cfg: TrainConfig, progress: bool = True) -> LanguageTargets | None:
+    """Reads the training views' feature caches, trains the autoencoder (eq. 2), encodes the targets.
+
+    Returns None when language is off, or automatic and some training view has no cache.
+    """
+    names = scene.names("train")
+    paths = {name: scene.feature_paths(name) for name in names}
+    missing = [name for name, p in paths.items() if p is None]
+    if cfg.language is False or (cfg.language is None and missing):
+        return None
+    if missing:
+        raise ValueError(
+            f"{scene.root}/language_features: no feature cache for training views {missing} "
+            "(run `langfield preprocess` or train without language)"
+        )
+    caches = {}
+    for name in names:
+        cam = scene.camera(name)
+        caches[name] = read_feature_cache(*paths[name], expected_hw=(cam.height, cam.width), dim=512)
+    features = np.concatenate([c.features for c in caches.values()])
+    if features.shape[0] == 0:
+        raise ValueError(f"{scene.root}/language_features: the training views' caches hold no masks")
+    ae_cfg = AutoencoderConfig(iterations=cfg.autoencoder_iterations, seed=cfg.seed)
+    autoencoder, stats = train_autoencoder(features, ae_cfg, progress=progress)
+    latents, valid = {}, {}
+    with torch.no_grad():
+        for name, cache in caches.items():
+            z = autoencoder.encode(torch.from_numpy(cache.features))  # [M, 3]
+            seg = torch.from_numpy(cache.segments.astype(np.int64))  # [3, H, W]
+            valid[name] = seg >= 0
+            latents[name] = z[seg.clamp_min(0)] * valid[name][..., None]
+    return LanguageTargets(latents, valid, autoencoder, stats, ae_cfg)
+
+
+def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None = None) -> LanguageField:
+    """An untrained field sized to ``scene``: random Gaussians in its bounds, colour and language fields."""
     bounds = scene_bounds(scene, cfg)
     train_cams = scene.cameras("train")
     pixels = max(c.width * c.height for c in train_cams)  # of one image
@@ -97,6 +164,31 @@ def build_field(scene: Scene, cfg: TrainConfig) -> LanguageField:
         hidden=cfg.color_hidden,
         n_freqs=cfg.color_freqs,
     )
+    language = decoder = None
+    language_meta = None
+    if targets is not None:
+        if cfg.language_features == "per-gaussian":
+            splats["lang"] = torch.nn.Parameter(torch.zeros(n, LANGUAGE_CHANNELS))
+        elif cfg.language_features == "hashgrid":
+            language = LanguageHeads(
+                grid,
+                torch.tensor(center, dtype=torch.float32),
+                float(half_extent),
+                hidden=cfg.language_hidden,
+            )
+        else:
+            raise ValueError(
+                f"language_features must be 'hashgrid' or 'per-gaussian', got {cfg.language_features!r}"
+            )
+        decoder = load_decoder(decoder_state(targets.autoencoder), targets.config).requires_grad_(False)
+        language_meta = {
+            "features": cfg.language_features,
+            "hidden": cfg.language_hidden,
+            "grid": asdict(grid),
+            "levels": ["subpart", "part", "whole"][:N_LEVELS],
+            "autoencoder": asdict(targets.config),
+            "autoencoder_stats": targets.stats,
+        }
     background = None if scene.background is None else [float(v) for v in scene.background]
     meta: dict[str, Any] = {
         "config": asdict(cfg),
@@ -109,15 +201,16 @@ def build_field(scene: Scene, cfg: TrainConfig) -> LanguageField:
         "background": background,
         "num_gaussians_init": n,
         "color_field": color_field_spec(grid, center, half_extent, cfg.color_hidden, cfg.color_freqs),
+        "language": language_meta,
     }
-    return LanguageField(splats, color, meta)
+    return LanguageField(splats, color, meta, language, decoder)
 
 
 def make_optimizers(
     field: LanguageField, extent: float, cfg: TrainConfig
 ) -> dict[str, torch.optim.Optimizer]:
     """One Adam per Gaussian parameter (so densification can edit each one) and one for the colour field."""
-    lrs = G.learning_rates(extent)
+    lrs = dict(G.learning_rates(extent), lang=cfg.per_gaussian_language_lr)
     opts: dict[str, torch.optim.Optimizer] = {
         name: torch.optim.Adam([{"params": [p], "lr": lrs[name], "name": name}], eps=1e-15)
         for name, p in field.splats.items()
@@ -129,6 +222,14 @@ def make_optimizers(
         ],
         eps=1e-15,
     )
+    if field.language is not None:
+        opts["language"] = torch.optim.Adam(
+            [
+                {"params": list(field.language.grid_parameters()), "lr": cfg.grid_lr},
+                {"params": list(field.language.mlp_parameters()), "lr": cfg.mlp_lr},
+            ],
+            eps=1e-15,
+        )
     return opts
 
 
@@ -172,7 +273,8 @@ def train(
     if cfg.iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {cfg.iterations}")
     torch.manual_seed(cfg.seed)
-    field = build_field(scene, cfg)
+    targets = language_targets(scene, cfg, progress=progress)
+    field = build_field(scene, cfg, targets)
     bounds = np.asarray(field.meta["bounds"])
     extent = float(np.linalg.norm(bounds[1] - bounds[0]) / 2)
     optimizers = make_optimizers(field, extent, cfg)
@@ -188,7 +290,7 @@ def train(
     )
     state = strategy.initialize_state(field.splats)
     cameras = {name: scene.camera(name) for name in train_names}
-    targets = {name: torch.from_numpy(scene.image(name)) for name in train_names}
+    images = {name: torch.from_numpy(scene.image(name)) for name in train_names}
     rng = np.random.default_rng(cfg.seed)
     order: list[str] = []
     train_seconds = 0.0
@@ -203,7 +305,11 @@ def train(
         optimizers["means"].param_groups[0]["lr"] = means_lr0 * math.exp(math.log(0.01) * frac)
 
         out = field.render(cameras[name], backend=cfg.backend)
-        loss = color_loss(out.rgb, targets[name], cfg.lambda_dssim)
+        loss = color_loss(out.rgb, images[name], cfg.lambda_dssim)
+        if targets is not None:
+            loss = loss + cfg.lambda_language * language_loss(
+                out.latents, targets.latents[name], targets.valid[name]
+            )
         loss.backward()
         if cfg.densify:
             info = {

@@ -1,0 +1,78 @@
+"""Language features of the Gaussians: phi_j^l = MLP_L(h_lang^l(p_j)) for l in (subpart, part, whole).
+
+Two ways to give each Gaussian its three 3-d latents (one per level):
+
+- :class:`LanguageHeads` (SOVGaussian): three hash grids h_lang^l read at the Gaussian's centre and one
+  shared MLP_L. The three grids share one table of 3 x 2 features per entry, so the hashing and the
+  corner look-up are done once for all levels; mathematically these are three grids of 2 features with
+  the same hash, which is how Instant-NGP-style grids of equal configuration behave anyway.
+- the per-Gaussian baseline (LangSplat; the paper's ablation #4): a learnable [N, 9] parameter
+  ``splats["lang"]``, edited with the other per-Gaussian parameters by densification.
+
+The latents live in the autoencoder's 3-d space (eq. 2); the field decodes rendered latents to CLIP
+space with the scene's decoder.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import replace
+
+from torch import Tensor, nn
+
+from langfield.hashgrid import HashGrid, HashGridConfig
+
+N_LEVELS = 3
+LATENT_DIM = 3
+LANGUAGE_CHANNELS = N_LEVELS * LATENT_DIM
+FEATURES_PER_LEVEL = 2  # of each level's grid, as the colour grid (DNGaussian: 16 levels x 2)
+
+
+class LanguageHeads(nn.Module):
+    """Hash-grid language field: [N, 3] positions -> [N, 3 levels, 3] latents.
+
+    Args:
+        grid_cfg: the grid sizes (``features_per_level`` is replaced by 2 per language level x 3 levels).
+        center: [3] centre of the grid box.
+        half_extent: [3] or scalar half-size of the grid box.
+        hidden: width of MLP_L's hidden layer.
+    """
+
+    def __init__(
+        self, grid_cfg: HashGridConfig, center: Tensor, half_extent: Tensor | float, hidden: int = 64
+    ):
+        super().__init__()
+        cfg = replace(grid_cfg, features_per_level=FEATURES_PER_LEVEL * N_LEVELS)
+        self.grid = HashGrid(cfg, center, half_extent)
+        self.n_grid_levels = cfg.n_levels
+        in_dim = cfg.n_levels * FEATURES_PER_LEVEL
+        self.mlp = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, LATENT_DIM))
+
+    def forward(self, means: Tensor) -> Tensor:
+        """Latents [N, 3, 3] (Gaussian, language level, latent) at positions ``means`` [N, 3]."""
+        n = means.shape[0]
+        h = self.grid(means)  # [N, L * 6], per grid level: subpart (2), part (2), whole (2)
+        h = h.reshape(n, self.n_grid_levels, N_LEVELS, FEATURES_PER_LEVEL).permute(0, 2, 1, 3)
+        return self.mlp(h.reshape(n, N_LEVELS, self.n_grid_levels * FEATURES_PER_LEVEL))
+
+    def grid_parameters(self) -> Iterator[nn.Parameter]:
+        yield from self.grid.parameters()
+
+    def mlp_parameters(self) -> Iterator[nn.Parameter]:
+        yield from self.mlp.parameters()
+
+
+def language_loss(rendered: Tensor, target: Tensor, valid: Tensor) -> Tensor:
+    """L_LF = sum_l mean over pixels with a mask at level l of ||E_i^l - Phi_i^l||_1.
+
+    Args:
+        rendered: [3, H, W, 3] rendered latents per level.
+        target: [3, H, W, 3] autoencoded mask features per level.
+        valid: [3, H, W] bool, pixels that have a mask at that level.
+
+    Returns:
+        Scalar; levels with no mask contribute 0 (no division by zero).
+    """
+    err = (rendered - target).abs().sum(-1)  # [3, H, W]
+    per_level = (err * valid).flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
+    return per_level.sum()

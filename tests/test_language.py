@@ -1,0 +1,130 @@
+"""The language field: heads, L_LF, geometry detached in the language pass, save/load, decoding."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from langfield import LanguageField, TrainConfig, load_scene, train
+from langfield.language import language_loss
+from langfield.synthetic import make_room
+from langfield.trainer import language_targets
+
+GEOMETRY = ("means", "log_scales", "quats", "opacity_logits")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=48, height=36))
+
+
+@pytest.fixture(scope="module", params=["hashgrid", "per-gaussian"])
+def field(request, scene) -> LanguageField:
+    cfg = TrainConfig(
+        iterations=10, num_gaussians=400, language_features=request.param, autoencoder_iterations=50
+    )
+    return train(scene, cfg, progress=False)
+
+
+def test_language_loss_hand_computed():
+    rendered = torch.zeros(3, 1, 2, 3)
+    target = torch.zeros(3, 1, 2, 3)
+    target[0, 0, 0] = torch.tensor([1.0, -2.0, 0.5])  # L1 error 3.5 on the one valid pixel of level 0
+    target[1, 0, 1] = torch.tensor([0.1, 0.0, 0.0])  # invalid pixel: ignored
+    valid = torch.zeros(3, 1, 2, dtype=torch.bool)
+    valid[0, 0, 0] = True
+    assert language_loss(rendered, target, valid).item() == pytest.approx(3.5)
+
+
+def test_language_loss_level_without_masks_is_zero_and_finite():
+    rendered = torch.randn(3, 4, 5, 3, requires_grad=True)
+    loss = language_loss(rendered, torch.zeros(3, 4, 5, 3), torch.zeros(3, 4, 5, dtype=torch.bool))
+    loss.backward()
+    assert loss.item() == 0.0 and torch.isfinite(rendered.grad).all()
+
+
+def test_render_gives_latents_and_decode_gives_unit_clip_features(field, scene):
+    cam = scene.camera(0)
+    with torch.no_grad():
+        r = field.render(cam)
+        decoded = field.decode(r.latents)
+    assert r.latents.shape == (3, cam.height, cam.width, 3)
+    assert decoded.shape == (3, cam.height, cam.width, 512)
+    assert torch.allclose(decoded.norm(dim=-1), torch.ones(3, cam.height, cam.width), atol=1e-4)
+
+
+def test_language_loss_moves_no_gaussian(field, scene):
+    # L_LF trains only the language grids and MLP_L (or the per-Gaussian latents): geometry detached.
+    name = scene.names("train")[0]
+    targets = language_targets(scene, TrainConfig(autoencoder_iterations=20), progress=False)
+    field.zero_grad(set_to_none=True)
+    r = field.render(scene.camera(name))
+    language_loss(r.latents, targets.latents[name], targets.valid[name]).backward()
+    for key in GEOMETRY:
+        grad = field.splats[key].grad
+        assert grad is None or torch.count_nonzero(grad) == 0, key
+    trained = field.splats["lang"] if "lang" in field.splats else field.language.grid.table
+    assert torch.count_nonzero(trained.grad) > 0
+    field.zero_grad(set_to_none=True)
+
+
+def test_save_load_keeps_language(field, scene, tmp_path):
+    field.save(tmp_path / "out")
+    loaded = LanguageField.load(tmp_path / "out")
+    cam = scene.camera(1)
+    with torch.no_grad():
+        a, b = field.render(cam), loaded.render(cam)
+        assert torch.equal(a.latents, b.latents)
+        assert torch.equal(field.decode(a.latents), loaded.decode(b.latents))
+    assert loaded.meta["language"]["features"] == field.meta["language"]["features"]
+
+
+def test_language_off_gives_no_latents(scene):
+    f = train(scene, TrainConfig(iterations=2, num_gaussians=200, language=False), progress=False)
+    assert not f.has_language and f.render(scene.camera(0)).latents is None
+    assert f.meta["language"] is None
+    with pytest.raises(ValueError, match="no language decoder"):
+        f.decode(torch.zeros(1, 3))
+
+
+def test_language_required_without_caches_names_the_folder(scene, tmp_path):
+    import shutil
+
+    copy = tmp_path / "scene"
+    shutil.copytree(scene.root, copy)
+    shutil.rmtree(copy / "language_features")
+    with pytest.raises(ValueError, match="language_features"):
+        train(load_scene(copy), TrainConfig(iterations=1, language=True), progress=False)
+    plain = train(load_scene(copy), TrainConfig(iterations=1, num_gaussians=100), progress=False)
+    assert not plain.has_language  # automatic: no caches, no language
+
+
+def test_unknown_language_features_mode_is_rejected(scene):
+    with pytest.raises(ValueError, match="language_features"):
+        train(scene, TrainConfig(iterations=1, language_features="sparse"), progress=False)
+
+
+def test_language_training_fits_the_training_views(scene):
+    cfg = TrainConfig(iterations=300, seed=0)
+    f = train(scene, cfg, progress=False)
+    from encoders.cache import read_feature_cache
+
+    name = scene.names("train")[0]
+    cache = read_feature_cache(*scene.feature_paths(name))
+    with torch.no_grad():
+        decoded = f.decode(f.render(scene.camera(name)).latents)
+    for level in range(3):
+        seg = torch.from_numpy(cache.segments[level].astype(np.int64))
+        valid = seg >= 0
+        target = torch.from_numpy(cache.features)[seg.clamp_min(0)]
+        cosine = (decoded[level] * target).sum(-1)[valid].mean().item()
+        assert cosine > 0.75, f"level {level}: mean cosine {cosine:.3f}"
+
+
+def test_eval_reports_feature_cosine_per_level(field, scene):
+    from langfield.evaluate import evaluate
+
+    report = evaluate(field, scene)
+    assert set(report["feature_cosine"]) == {"subpart", "part", "whole"}
+    assert all(-1.0 <= v <= 1.0 for v in report["feature_cosine"].values())
