@@ -96,6 +96,22 @@ def training_curve(
     return points
 
 
+def language_overhead(scene: Scene, iterations: int = 100, seed: int = 0) -> dict[str, float]:
+    """Milliseconds per training iteration with and without the language field, same scene and length.
+
+    The autoencoder's one-off training is reported apart (it runs once per scene, before the loop).
+    """
+    result: dict[str, float] = {}
+    for name, language in (("rgb_only", False), ("with_language", True)):
+        cfg = TrainConfig(iterations=iterations, seed=seed, language=language)
+        field = train(scene, cfg, progress=False)
+        result[f"{name}_ms_per_iteration"] = 1000 * field.meta["train_seconds"] / iterations
+        if language and field.meta.get("language"):
+            result["autoencoder_seconds"] = field.meta["language"]["autoencoder_stats"]["seconds"]
+    result["ratio"] = result["with_language_ms_per_iteration"] / result["rgb_only_ms_per_iteration"]
+    return result
+
+
 def plot_curve(points: list[dict], path: Path) -> None:
     """PSNR against training seconds and against Gaussian count, one PNG."""
     import matplotlib
@@ -131,6 +147,14 @@ def format_table(result: dict) -> str:
             f"  {name:6s} {r['step_ms']:9.1f} ms   {ref / r['step_ms']:6.1f}x vs torch   "
             f"max |image - torch| {r['image_max_abs_err']:.2e}"
         )
+    lo = result.get("language_overhead")
+    if lo:
+        lines.append(
+            f"training iteration: {lo['rgb_only_ms_per_iteration']:.0f} ms RGB only, "
+            f"{lo['with_language_ms_per_iteration']:.0f} ms with the language field "
+            f"(+{100 * (lo['ratio'] - 1):.0f} %); "
+            f"autoencoder once per scene {lo.get('autoencoder_seconds', 0):.1f} s"
+        )
     if result.get("curve"):
         lines.append("training curve (novel views):")
         lines.append("  iterations   seconds    PSNR   Gaussians")
@@ -162,6 +186,8 @@ def run_bench(
         "channels": channels,
         "threads": torch.get_num_threads(),
     }
+    has_language = all(scene.feature_paths(n) is not None for n in scene.names("train"))
+    result["language_overhead"] = language_overhead(scene, seed=seed) if has_language else None
     result["curve"] = training_curve(scene, iterations, every, seed) if iterations > 0 else []
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)

@@ -782,22 +782,26 @@ def _near_far_box(cameras: Sequence[Camera], near: float, far: float) -> np.ndar
 
 
 def _shared_frustum_box(cameras: Sequence[Camera], steps: int = 9) -> np.ndarray:
-    """[2, 3] box around the region that at least two of the cameras see (all of it for one camera).
+    """[2, 3] box around the region the cameras share.
 
-    The depth range is [0.2 d, 2 d], with d the median distance from the cameras to their focus
-    (_focus_distance). Points on a `steps`^3 grid in each frustum are kept if they project
-    inside at least two cameras; if the frustums share nothing, all of them are kept.
+    When the cameras converge on a focus point (an object-centric capture such as the Blender scenes),
+    the object sits around that point: the depth range is [0.5 d, 1.5 d], with d the median distance
+    from the cameras to the focus, and points must be seen by every camera. Otherwise (forward-facing
+    captures) the range is [0.2 d, 2 d] and two cameras suffice. Points on a `steps`^3 grid in each
+    frustum are kept if enough cameras see them; if none are, all of them are kept.
     """
-    d = _focus_distance(cameras)
-    depths = np.linspace(0.2 * d, 2.0 * d, steps)
+    d, converging = _focus_distance(cameras)
+    near, far, needed = (0.5, 1.5, len(cameras)) if converging else (0.2, 2.0, min(2, len(cameras)))
+    depths = np.linspace(near * d, far * d, steps)
     points = np.concatenate([_frustum_points(cam, depths, steps) for cam in cameras])
     seen = np.sum([_sees(cam, points) for cam in cameras], axis=0)
-    shared = points[seen >= min(2, len(cameras))]
+    shared = points[seen >= needed]
     return _padded_box(shared if len(shared) else points, 1e-3 * d)
 
 
-def _focus_distance(cameras: Sequence[Camera]) -> float:
-    """Median distance from the cameras to the least-squares closest point to their optical axes.
+def _focus_distance(cameras: Sequence[Camera]) -> tuple[float, bool]:
+    """Median distance from the cameras to the least-squares closest point to their optical axes,
+    and whether that point is well defined (the cameras converge on it).
 
     When that point is ill-defined (one camera, near-parallel axes, or a point behind the cameras,
     as in forward-facing captures) the distance falls back to 5x the cameras' spread, a typical
@@ -815,9 +819,9 @@ def _focus_distance(cameras: Sequence[Camera]) -> float:
             ahead = np.einsum("ni,ni->n", focus - centres, axes)
             distance = float(np.median(np.linalg.norm(focus - centres, axis=1)))
             if np.median(ahead) > 0 and distance > 1e-9:
-                return distance
+                return distance, True
     spread = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
-    return 5.0 * spread if spread > 1e-9 else 1.0
+    return (5.0 * spread if spread > 1e-9 else 1.0), False
 
 
 def _frustum_points(cam: Camera, depths: np.ndarray, steps: int) -> np.ndarray:
