@@ -88,16 +88,30 @@ class LanguageField(nn.Module):
     def has_language(self) -> bool:
         return self.language is not None or "lang" in self.splats
 
-    def gaussian_latents(self) -> Tensor | None:
+    def gaussian_latents(self, corners: tuple[Tensor, Tensor] | None = None) -> Tensor | None:
         """[N, 3, 3] language latents of every Gaussian (level, latent), or None without language.
 
         The hash grid reads detached positions: L_LF must not move the Gaussians (DESIGN.md).
+        ``corners``: the colour grid's cell look-up of the means, reused when the grids share a layout.
         """
         if "lang" in self.splats:
             return self.splats["lang"].reshape(-1, N_LEVELS, LATENT_DIM)
         if self.language is not None:
+            if corners is not None and self._grids_share_cells():
+                rows, frac = corners
+                return self.language(self.splats["means"], (rows, frac.detach()))
             return self.language(self.splats["means"].detach())
         return None
+
+    def _grids_share_cells(self) -> bool:
+        a, b = self.color.grid, self.language.grid
+        return (
+            a.cfg.n_levels == b.cfg.n_levels
+            and a.cfg.log2_table_size == b.cfg.log2_table_size
+            and torch.equal(a.resolution, b.resolution)
+            and torch.equal(a.center, b.center)
+            and torch.equal(a.half_extent, b.half_extent)
+        )
 
     def decode(self, latents: Tensor) -> Tensor:
         """Maps latents [..., 3] to unit 512-d CLIP features [..., 512] with the scene's decoder."""
@@ -130,9 +144,10 @@ class LanguageField(nn.Module):
         center = torch.as_tensor(camera.center, dtype=means.dtype)
         offset = means - center
         dist = torch.sqrt((offset * offset).sum(-1, keepdim=True) + 1e-12)
-        rgb = self.color(means, offset / dist)
+        corners = self.color.grid.corners(means)
+        rgb = self.color(means, offset / dist, corners)
         features = [rgb, dist]
-        latents = self.gaussian_latents()
+        latents = self.gaussian_latents(corners)
         if latents is not None:
             features.append(latents.reshape(-1, LANGUAGE_CHANNELS))
         features = torch.cat(features, dim=-1)

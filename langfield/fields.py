@@ -84,12 +84,16 @@ class ColorField(nn.Module):
             nn.Linear(hidden, 3),
         )
 
-    def forward(self, means: Tensor, view_dirs: Tensor) -> Tensor:
+    def forward(
+        self, means: Tensor, view_dirs: Tensor, corners: tuple[Tensor, Tensor] | None = None
+    ) -> Tensor:
         """Colour of each Gaussian seen along ``view_dirs``.
 
         Args:
             means: [N, 3] Gaussian centres in world coordinates.
             view_dirs: [N, 3] unit directions from the camera to the Gaussians.
+            corners: ``self.grid.corners(means)`` if the caller already has them (shared with the
+                language grid, which has the same cell layout).
 
         Returns:
             [N, 3] RGB in (0, 1).
@@ -99,7 +103,8 @@ class ColorField(nn.Module):
                 f"ColorField expects means and view_dirs of shape [N, 3], got {tuple(means.shape)} "
                 f"and {tuple(view_dirs.shape)}"
             )
-        return self._rgb(self.grid(means), view_dirs)
+        h = self.grid.interpolate(*corners) if corners is not None else self.grid(means)
+        return self._rgb(h, view_dirs)
 
     def _rgb(self, h: Tensor, view_dirs: Tensor) -> Tensor:
         """RGB from grid features h [N, L F] and unit directions [N, 3]."""

@@ -48,10 +48,15 @@ class LanguageHeads(nn.Module):
         in_dim = cfg.n_levels * FEATURES_PER_LEVEL
         self.mlp = nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, LATENT_DIM))
 
-    def forward(self, means: Tensor) -> Tensor:
-        """Latents [N, 3, 3] (Gaussian, language level, latent) at positions ``means`` [N, 3]."""
+    def forward(self, means: Tensor, corners: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        """Latents [N, 3, 3] (Gaussian, language level, latent) at positions ``means`` [N, 3].
+
+        ``corners`` may come from another grid with the same cell layout (the colour grid), which spares
+        the hashing; the caller detaches what should pass no gradient.
+        """
         n = means.shape[0]
-        h = self.grid(means)  # [N, L * 6], per grid level: subpart (2), part (2), whole (2)
+        # [N, L * 6], per grid level: subpart (2), part (2), whole (2)
+        h = self.grid.interpolate(*corners) if corners is not None else self.grid(means)
         h = h.reshape(n, self.n_grid_levels, N_LEVELS, FEATURES_PER_LEVEL).permute(0, 2, 1, 3)
         return self.mlp(h.reshape(n, N_LEVELS, self.n_grid_levels * FEATURES_PER_LEVEL))
 

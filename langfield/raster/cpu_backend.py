@@ -192,6 +192,7 @@ def _backward(
         weight = np.empty(TILE_SIZE, np.float32)
         d_alpha = np.empty(TILE_SIZE, np.float32)
         inv_1m = np.empty(TILE_SIZE, np.float32)
+        gauss_px = np.empty(TILE_SIZE, np.float32)
         prefix = np.empty((n_ch, TILE_SIZE), np.float32)
         total = np.empty((n_ch, TILE_SIZE), np.float32)
         g_c = np.empty((n_ch, TILE_SIZE), np.float32)
@@ -234,6 +235,7 @@ def _backward(
                     q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
                     gauss = _exp_neg(-_HALF * q)
                     raw = o * gauss
+                    gauss_px[p] = gauss
                     alpha = min(_ALPHA_MAX, raw)
                     hit = (alpha >= _ALPHA_MIN) and (q >= _ZERO) and (k < last[p])
                     weight[p] = alpha * trans[p] if hit else _ZERO
@@ -243,7 +245,7 @@ def _backward(
                     any_hit = any_hit or hit
                 if not any_hit:
                     continue
-                for ch in range(n_ch):
+                for ch in range(n_geo):
                     col = colors[g, ch]
                     s = _ZERO
                     for p in range(TILE_SIZE):
@@ -252,8 +254,13 @@ def _backward(
                         prefix[ch, p] += w * col
                         # dC/d alpha_i = c_i T_i - (C - prefix_i) / (1 - alpha_i)
                         d = col * trans[p] - (total[ch, p] - prefix[ch, p]) * inv_1m[p]
-                        # Channels from n_geo on pass no gradient to the geometry.
-                        d_alpha[p] += g_c[ch, p] * d if (w != _ZERO and ch < n_geo) else _ZERO
+                        d_alpha[p] += g_c[ch, p] * d if w != _ZERO else _ZERO
+                    g_colors[k, ch] += s
+                # Channels from n_geo on pass no gradient to the geometry: only their own values'.
+                for ch in range(n_geo, n_ch):
+                    s = _ZERO
+                    for p in range(TILE_SIZE):
+                        s += weight[p] * g_c[ch, p]
                     g_colors[k, ch] += s
                 gm_x = _ZERO
                 gm_y = _ZERO
@@ -265,8 +272,7 @@ def _backward(
                     w = weight[p]
                     if w != _ZERO:
                         dx = _F(x0 + p) + _HALF - mx
-                        q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
-                        gauss = _exp_neg(-_HALF * q)
+                        gauss = gauss_px[p]
                         raw = o * gauss
                         trans[p] = trans[p] * (_ONE - min(_ALPHA_MAX, raw))
                         if raw < _ALPHA_MAX:  # clamped alpha passes no gradient
