@@ -242,7 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="generate the built-in scene, train on 3 views, render and report")
     p.add_argument("--out", default="demo_out")
-    p.add_argument("--iterations", type=int, default=2000)
+    p.add_argument("--iterations", type=int, default=1500, help="training iterations (default 1500)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, default=160)
     p.add_argument("--height", type=int, default=120)
