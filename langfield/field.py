@@ -83,6 +83,8 @@ class LanguageField(nn.Module):
         self.meta = meta
         self.language = language
         self.decoder = decoder
+        # The language grid may reuse the colour grid's cell look-up when both share the layout.
+        self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
 
     @property
     def has_language(self) -> bool:
@@ -97,21 +99,11 @@ class LanguageField(nn.Module):
         if "lang" in self.splats:
             return self.splats["lang"].reshape(-1, N_LEVELS, LATENT_DIM)
         if self.language is not None:
-            if corners is not None and self._grids_share_cells():
+            if corners is not None and self._shared_cells:
                 rows, frac = corners
                 return self.language(self.splats["means"], (rows, frac.detach()))
             return self.language(self.splats["means"].detach())
         return None
-
-    def _grids_share_cells(self) -> bool:
-        a, b = self.color.grid, self.language.grid
-        return (
-            a.cfg.n_levels == b.cfg.n_levels
-            and a.cfg.log2_table_size == b.cfg.log2_table_size
-            and torch.equal(a.resolution, b.resolution)
-            and torch.equal(a.center, b.center)
-            and torch.equal(a.half_extent, b.half_extent)
-        )
 
     def decode(self, latents: Tensor) -> Tensor:
         """Maps latents [..., 3] to unit 512-d CLIP features [..., 512] with the scene's decoder."""
@@ -280,6 +272,17 @@ def build_color_field(meta: dict[str, Any]) -> ColorField:
         torch.tensor(spec["half_extent"], dtype=torch.float32),
         hidden=spec["hidden"],
         n_freqs=spec["n_freqs"],
+    )
+
+
+def _same_cells(a, b) -> bool:
+    """Whether two hash grids find the same table rows for every point (configs may differ in features)."""
+    return (
+        a.cfg.n_levels == b.cfg.n_levels
+        and a.cfg.log2_table_size == b.cfg.log2_table_size
+        and torch.equal(a.resolution, b.resolution)
+        and torch.equal(a.center, b.center)
+        and torch.equal(a.half_extent, b.half_extent)
     )
 
 

@@ -272,7 +272,6 @@ def train(
         raise ValueError(f"{scene.root}: no training views; choose them with views= or n_views=")
     if cfg.iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {cfg.iterations}")
-    torch.manual_seed(cfg.seed)
     targets = language_targets(scene, cfg, progress=progress)
     field = build_field(scene, cfg, targets)
     bounds = np.asarray(field.meta["bounds"])

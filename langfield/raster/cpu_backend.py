@@ -400,8 +400,3 @@ def rasterize_cpu(
     return _RasterizeCPU.apply(
         means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo
     )
-
-
-def num_threads() -> int:
-    """Threads the kernels run on."""
-    return numba.get_num_threads()
