@@ -1,7 +1,8 @@
 """Differentiable rasterization of 3D Gaussians with any number of channels.
 
-:func:`rasterize` projects (PyTorch, shared), bins into 16x16 tiles (shared) and composites with the
-chosen backend: ``"torch"`` (the readable reference) or ``"cpu"`` (numba kernels, hand-written
+:func:`rasterize` projects the Gaussians to screen-space ellipses, bins them into 16x16 tiles and
+composites them with the chosen backend: ``"torch"`` (PyTorch throughout, written to be read: the
+reference every test compares with) or ``"cpu"`` (numba kernels for all three stages, hand-written
 backward). ``"auto"`` picks ``"cpu"``.
 """
 
@@ -62,14 +63,18 @@ def composite(
         background = features.new_zeros(n_ch)
     background = torch.as_tensor(background, dtype=features.dtype).reshape(n_ch)
     opacities = opacities.reshape(-1)
-    radii = opacity_aware_radii(projected.radii, projected.conics, opacities)
-    offsets, ids = bin_gaussians(projected.means2d, radii, projected.depths, width, height)
     name = resolve_backend(backend)
     if name == "torch":
+        radii = opacity_aware_radii(projected.radii, projected.conics, opacities)
+        offsets, ids = bin_gaussians(projected.means2d, radii, projected.depths, width, height)
         fn = rasterize_torch
     else:
         from langfield.raster.cpu_backend import rasterize_cpu
+        from langfield.raster.cpu_geometry import bin_gaussians_cpu
 
+        offsets, ids = bin_gaussians_cpu(
+            projected.means2d, projected.radii, projected.conics, opacities, projected.depths, width, height
+        )
         fn = rasterize_cpu
     return fn(
         projected.means2d,
@@ -124,7 +129,11 @@ def rasterize(
         >>> out.image.shape
         torch.Size([24, 32, 3])
     """
-    projected = project_gaussians(
+    if resolve_backend(backend) == "torch":
+        project = project_gaussians
+    else:
+        from langfield.raster.cpu_geometry import project_gaussians_cpu as project
+    projected = project(
         means, quats, scales, camera.world_to_camera(), camera.intrinsics(), camera.width, camera.height, near
     )
     if projected.means2d.requires_grad:

@@ -2,8 +2,9 @@
 
 Same arithmetic as :mod:`langfield.raster.torch_backend` (the oracle), arranged for a 2-core CPU:
 
-- tiles run in parallel (``prange``); inside a tile, one 16-pixel row is processed at a time, so the
-  innermost loops run over 16 contiguous pixels and the compiler vectorises them;
+- tiles run in parallel (``prange`` over workers, each given tiles of about equal total work); inside
+  a tile, one 16-pixel row is processed at a time, so the innermost loops run over 16 contiguous
+  pixels and the compiler vectorises them;
 - a Gaussian is skipped for a whole row when even the row's closest point to its centre gets
   alpha < 1/255 (``q_min = dy^2 det / a`` for the conic [[a, b], [b, c]]), which changes no pixel;
 - ``exp`` is a polynomial: alpha only matters for ``q/2 <= ln 255 < 6``, where
@@ -11,8 +12,10 @@ Same arithmetic as :mod:`langfield.raster.torch_backend` (the oracle), arranged 
 - the backward walks each pixel's list front to back again and recomputes the transmittance, rather
   than dividing the final transmittance by (1 - alpha) from the back; what lies behind Gaussian i is
   ``C - prefix_i``, known from the forward output;
-- gradients are written per (tile, Gaussian) intersection and summed with ``index_add_``: no two
-  threads write the same memory, so results are deterministic.
+- gradients are written per (tile, Gaussian) intersection and then summed per Gaussian, one column
+  per thread in a fixed order: no two threads write the same memory, so results are deterministic.
+
+Projection and binning run in numba too (:mod:`langfield.raster.cpu_geometry`).
 
 Choice of numba over a C++ extension: it needs no compiler at install time, caches its machine code
 (``cache=True``), and keeps the kernels in Python beside the reference they are tested against.
@@ -21,7 +24,6 @@ Choice of numba over a C++ extension: it needs no compiler at install time, cach
 from __future__ import annotations
 
 import math
-import os
 
 import numba
 import numpy as np
@@ -30,12 +32,9 @@ from numba import njit, prange
 from torch import Tensor
 
 from langfield.raster.binning import TILE_SIZE
+from langfield.raster.cpu_geometry import configure_numba_threads
 
-# numba's OpenMP layer keeps its threads spinning after each kernel, and they fight PyTorch's own
-# OpenMP threads for the 2 cores: every torch op right after a kernel ran ~50x slower. The workqueue
-# layer parks its threads instead. A user's NUMBA_THREADING_LAYER still wins.
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    numba.config.THREADING_LAYER = "workqueue"
+configure_numba_threads()
 
 _F = np.float32
 _ALPHA_MIN = _F(1.0 / 255.0)
@@ -64,6 +63,8 @@ def _exp_neg(x):
 @njit(parallel=True, fastmath=True, cache=True)
 def _forward(
     offsets,
+    tile_order,
+    worker_starts,
     gids,
     means2d,
     conics,
@@ -78,87 +79,92 @@ def _forward(
     t_final,
     n_contrib,
 ):
-    n_tiles = offsets.shape[0] - 1
     n_ch = colors.shape[1]
-    for tile in prange(n_tiles):
-        start, end = offsets[tile], offsets[tile + 1]
-        x0 = (tile % tiles_x) * TILE_SIZE
-        y0 = (tile // tiles_x) * TILE_SIZE
-        trans = np.empty(TILE_SIZE, np.float32)
-        live = np.empty(TILE_SIZE, np.float32)
-        weight = np.empty(TILE_SIZE, np.float32)
-        last = np.empty(TILE_SIZE, np.float32)
-        xs = np.empty(TILE_SIZE, np.float32)
-        acc = np.empty((n_ch, TILE_SIZE), np.float32)
-        # The tile's Gaussians, gathered once into contiguous arrays: every row walks them again.
-        m = end - start
-        gx = np.empty(m, np.float32)
-        gy = np.empty(m, np.float32)
-        ga = np.empty(m, np.float32)
-        gb = np.empty(m, np.float32)
-        gc = np.empty(m, np.float32)
-        go = np.empty(m, np.float32)
-        gq = np.empty(m, np.float32)
-        for j in range(m):
-            g = gids[start + j]
-            gx[j], gy[j] = means2d[g, 0], means2d[g, 1]
-            ga[j], gb[j], gc[j] = conics[g, 0], _F(2.0) * conics[g, 1], conics[g, 2]
-            go[j], gq[j] = opac[g], q_max[g] * _ROW_MARGIN
-        for p in range(TILE_SIZE):
-            xs[p] = _F(x0 + p) + _HALF
-        for r in range(TILE_SIZE):
-            y = y0 + r
-            if y >= height:
-                break
-            for p in range(TILE_SIZE):
-                trans[p] = _ONE
-                last[p] = _ZERO
-                live[p] = _ONE if x0 + p < width else _ZERO
-            acc[:, :] = _ZERO
-            py = _F(y) + _HALF
+    # Each worker takes a precomputed, balanced set of tiles (see _balance): prange splits its range
+    # statically, and the tiles' work differs by 2x across an image.
+    for w in prange(worker_starts.shape[0] - 1):
+        for ti in range(worker_starts[w], worker_starts[w + 1]):
+            tile = tile_order[ti]
+            start, end = offsets[tile], offsets[tile + 1]
+            x0 = (tile % tiles_x) * TILE_SIZE
+            y0 = (tile // tiles_x) * TILE_SIZE
+            trans = np.empty(TILE_SIZE, np.float32)
+            live = np.empty(TILE_SIZE, np.float32)
+            weight = np.empty(TILE_SIZE, np.float32)
+            last = np.empty(TILE_SIZE, np.float32)
+            xs = np.empty(TILE_SIZE, np.float32)
+            acc = np.empty((n_ch, TILE_SIZE), np.float32)
+            # The tile's Gaussians, gathered once into contiguous arrays: every row walks them again.
+            m = end - start
+            gx = np.empty(m, np.float32)
+            gy = np.empty(m, np.float32)
+            ga = np.empty(m, np.float32)
+            gb = np.empty(m, np.float32)
+            gc = np.empty(m, np.float32)
+            go = np.empty(m, np.float32)
+            gq = np.empty(m, np.float32)
             for j in range(m):
-                ca, cb2, cc = ga[j], gb[j], gc[j]
-                dy = py - gy[j]
-                if dy * dy * (ca * cc - _F(0.25) * cb2 * cb2) > ca * gq[j]:
-                    continue
-                o = go[j]
-                mx = gx[j]
-                kf = _F(start + j + 1)
-                n_hit = _ZERO
-                n_live = _ZERO
-                # Branch-free over the row's 16 pixels, so LLVM vectorises it.
-                for p in range(TILE_SIZE):
-                    dx = xs[p] - mx
-                    q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
-                    alpha = min(_ALPHA_MAX, o * _exp_neg(-_HALF * q))
-                    ok = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO)) * live[p]
-                    test = trans[p] * (_ONE - alpha)
-                    hit = ok * _F(test >= _T_MIN)
-                    live[p] = live[p] - ok + hit
-                    weight[p] = hit * alpha * trans[p]
-                    trans[p] = trans[p] + hit * (test - trans[p])
-                    last[p] = max(last[p], hit * kf)
-                    n_hit += hit
-                    n_live += live[p]
-                if n_hit > _ZERO:
-                    for ch in range(n_ch):
-                        col = colors[gids[start + j], ch]
-                        for p in range(TILE_SIZE):
-                            acc[ch, p] += weight[p] * col
-                if n_live == _ZERO:
-                    break
+                g = gids[start + j]
+                gx[j], gy[j] = means2d[g, 0], means2d[g, 1]
+                ga[j], gb[j], gc[j] = conics[g, 0], _F(2.0) * conics[g, 1], conics[g, 2]
+                go[j], gq[j] = opac[g], q_max[g] * _ROW_MARGIN
             for p in range(TILE_SIZE):
-                x = x0 + p
-                if x < width:
-                    for ch in range(n_ch):
-                        out[y, x, ch] = acc[ch, p] + trans[p] * background[ch]
-                    t_final[y, x] = trans[p]
-                    n_contrib[y, x] = np.int32(last[p])
+                xs[p] = _F(x0 + p) + _HALF
+            for r in range(TILE_SIZE):
+                y = y0 + r
+                if y >= height:
+                    break
+                for p in range(TILE_SIZE):
+                    trans[p] = _ONE
+                    last[p] = _ZERO
+                    live[p] = _ONE if x0 + p < width else _ZERO
+                acc[:, :] = _ZERO
+                py = _F(y) + _HALF
+                for j in range(m):
+                    ca, cb2, cc = ga[j], gb[j], gc[j]
+                    dy = py - gy[j]
+                    if dy * dy * (ca * cc - _F(0.25) * cb2 * cb2) > ca * gq[j]:
+                        continue
+                    o = go[j]
+                    mx = gx[j]
+                    kf = _F(start + j + 1)
+                    n_hit = _ZERO
+                    n_live = _ZERO
+                    # Branch-free over the row's 16 pixels, so LLVM vectorises it.
+                    for p in range(TILE_SIZE):
+                        dx = xs[p] - mx
+                        q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+                        alpha = min(_ALPHA_MAX, o * _exp_neg(-_HALF * q))
+                        ok = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO)) * live[p]
+                        test = trans[p] * (_ONE - alpha)
+                        hit = ok * _F(test >= _T_MIN)
+                        live[p] = live[p] - ok + hit
+                        weight[p] = hit * alpha * trans[p]
+                        trans[p] = trans[p] + hit * (test - trans[p])
+                        last[p] = max(last[p], hit * kf)
+                        n_hit += hit
+                        n_live += live[p]
+                    if n_hit > _ZERO:
+                        for ch in range(n_ch):
+                            col = colors[gids[start + j], ch]
+                            for p in range(TILE_SIZE):
+                                acc[ch, p] += weight[p] * col
+                    if n_live == _ZERO:
+                        break
+                for p in range(TILE_SIZE):
+                    x = x0 + p
+                    if x < width:
+                        for ch in range(n_ch):
+                            out[y, x, ch] = acc[ch, p] + trans[p] * background[ch]
+                        t_final[y, x] = trans[p]
+                        n_contrib[y, x] = np.int32(last[p])
 
 
 @njit(parallel=True, fastmath=True, cache=True)
 def _backward(
     offsets,
+    tile_order,
+    worker_starts,
     gids,
     means2d,
     conics,
@@ -179,116 +185,166 @@ def _backward(
     g_colors,
     n_geo,
 ):
-    n_tiles = offsets.shape[0] - 1
     n_ch = colors.shape[1]
-    for tile in prange(n_tiles):
-        start = offsets[tile]  # the row loop stops at the last contributing Gaussian, before the end
-        x0 = (tile % tiles_x) * TILE_SIZE
-        y0 = (tile // tiles_x) * TILE_SIZE
-        trans = np.empty(TILE_SIZE, np.float32)
-        t_end = np.empty(TILE_SIZE, np.float32)
-        g_a = np.empty(TILE_SIZE, np.float32)
-        last = np.empty(TILE_SIZE, np.int32)
-        weight = np.empty(TILE_SIZE, np.float32)
-        d_alpha = np.empty(TILE_SIZE, np.float32)
-        inv_1m = np.empty(TILE_SIZE, np.float32)
-        gauss_px = np.empty(TILE_SIZE, np.float32)
-        prefix = np.empty((n_ch, TILE_SIZE), np.float32)
-        total = np.empty((n_ch, TILE_SIZE), np.float32)
-        g_c = np.empty((n_ch, TILE_SIZE), np.float32)
-        for r in range(TILE_SIZE):
-            y = y0 + r
-            if y >= height:
-                break
-            row_last = 0
-            for p in range(TILE_SIZE):
-                x = x0 + p
-                if x < width:
-                    last[p] = n_contrib[y, x]
-                    t_end[p] = t_final[y, x]
-                    g_a[p] = grad_alpha[y, x]
-                    for ch in range(n_ch):
-                        total[ch, p] = out[y, x, ch]
-                        g_c[ch, p] = grad_out[y, x, ch]
-                else:
-                    last[p] = 0
-                    t_end[p] = _ONE
-                    g_a[p] = _ZERO
-                    for ch in range(n_ch):
-                        total[ch, p] = _ZERO
-                        g_c[ch, p] = _ZERO
-                row_last = max(row_last, last[p])
-                trans[p] = _ONE
-            prefix[:, :] = _ZERO
-            py = _F(y) + _HALF
-            for k in range(start, row_last):
-                g = gids[k]
-                ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
-                mx, my = means2d[g, 0], means2d[g, 1]
-                dy = py - my
-                if dy * dy * (ca * cc - cb * cb) > ca * q_max[g] * _ROW_MARGIN:
-                    continue
-                o = opac[g]
-                any_hit = False
+    # Each worker takes a precomputed, balanced set of tiles (see _balance): prange splits its range
+    # statically, and the tiles' work differs by 2x across an image.
+    for w in prange(worker_starts.shape[0] - 1):
+        for ti in range(worker_starts[w], worker_starts[w + 1]):
+            tile = tile_order[ti]
+            start = offsets[tile]  # the row loop stops at the last contributing Gaussian, before the end
+            x0 = (tile % tiles_x) * TILE_SIZE
+            y0 = (tile // tiles_x) * TILE_SIZE
+            trans = np.empty(TILE_SIZE, np.float32)
+            t_end = np.empty(TILE_SIZE, np.float32)
+            g_a = np.empty(TILE_SIZE, np.float32)
+            last = np.empty(TILE_SIZE, np.int32)
+            weight = np.empty(TILE_SIZE, np.float32)
+            d_alpha = np.empty(TILE_SIZE, np.float32)
+            inv_1m = np.empty(TILE_SIZE, np.float32)
+            gauss_px = np.empty(TILE_SIZE, np.float32)
+            prefix = np.empty((n_ch, TILE_SIZE), np.float32)
+            total = np.empty((n_ch, TILE_SIZE), np.float32)
+            g_c = np.empty((n_ch, TILE_SIZE), np.float32)
+            for r in range(TILE_SIZE):
+                y = y0 + r
+                if y >= height:
+                    break
+                row_last = 0
                 for p in range(TILE_SIZE):
-                    dx = _F(x0 + p) + _HALF - mx
-                    q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
-                    gauss = _exp_neg(-_HALF * q)
-                    raw = o * gauss
-                    gauss_px[p] = gauss
-                    alpha = min(_ALPHA_MAX, raw)
-                    hit = (alpha >= _ALPHA_MIN) and (q >= _ZERO) and (k < last[p])
-                    weight[p] = alpha * trans[p] if hit else _ZERO
-                    inv_1m[p] = _ONE / (_ONE - alpha)
-                    # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
-                    d_alpha[p] = g_a[p] * t_end[p] * inv_1m[p] if hit else _ZERO
-                    any_hit = any_hit or hit
-                if not any_hit:
-                    continue
-                for ch in range(n_geo):
-                    col = colors[g, ch]
-                    s = _ZERO
+                    x = x0 + p
+                    if x < width:
+                        last[p] = n_contrib[y, x]
+                        t_end[p] = t_final[y, x]
+                        g_a[p] = grad_alpha[y, x]
+                        for ch in range(n_ch):
+                            total[ch, p] = out[y, x, ch]
+                            g_c[ch, p] = grad_out[y, x, ch]
+                    else:
+                        last[p] = 0
+                        t_end[p] = _ONE
+                        g_a[p] = _ZERO
+                        for ch in range(n_ch):
+                            total[ch, p] = _ZERO
+                            g_c[ch, p] = _ZERO
+                    row_last = max(row_last, last[p])
+                    trans[p] = _ONE
+                prefix[:, :] = _ZERO
+                py = _F(y) + _HALF
+                for k in range(start, row_last):
+                    g = gids[k]
+                    ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+                    mx, my = means2d[g, 0], means2d[g, 1]
+                    dy = py - my
+                    if dy * dy * (ca * cc - cb * cb) > ca * q_max[g] * _ROW_MARGIN:
+                        continue
+                    o = opac[g]
+                    any_hit = False
+                    for p in range(TILE_SIZE):
+                        dx = _F(x0 + p) + _HALF - mx
+                        q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+                        gauss = _exp_neg(-_HALF * q)
+                        raw = o * gauss
+                        gauss_px[p] = gauss
+                        alpha = min(_ALPHA_MAX, raw)
+                        hit = (alpha >= _ALPHA_MIN) and (q >= _ZERO) and (k < last[p])
+                        weight[p] = alpha * trans[p] if hit else _ZERO
+                        inv_1m[p] = _ONE / (_ONE - alpha)
+                        # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
+                        d_alpha[p] = g_a[p] * t_end[p] * inv_1m[p] if hit else _ZERO
+                        any_hit = any_hit or hit
+                    if not any_hit:
+                        continue
+                    for ch in range(n_geo):
+                        col = colors[g, ch]
+                        s = _ZERO
+                        for p in range(TILE_SIZE):
+                            w = weight[p]
+                            s += w * g_c[ch, p]
+                            prefix[ch, p] += w * col
+                            # dC/d alpha_i = c_i T_i - (C - prefix_i) / (1 - alpha_i)
+                            d = col * trans[p] - (total[ch, p] - prefix[ch, p]) * inv_1m[p]
+                            d_alpha[p] += g_c[ch, p] * d if w != _ZERO else _ZERO
+                        g_colors[k, ch] += s
+                    # Channels from n_geo on pass no gradient to the geometry: only their own values'.
+                    for ch in range(n_geo, n_ch):
+                        s = _ZERO
+                        for p in range(TILE_SIZE):
+                            s += weight[p] * g_c[ch, p]
+                        g_colors[k, ch] += s
+                    gm_x = _ZERO
+                    gm_y = _ZERO
+                    gca = _ZERO
+                    gcb = _ZERO
+                    gcc = _ZERO
+                    gop = _ZERO
                     for p in range(TILE_SIZE):
                         w = weight[p]
-                        s += w * g_c[ch, p]
-                        prefix[ch, p] += w * col
-                        # dC/d alpha_i = c_i T_i - (C - prefix_i) / (1 - alpha_i)
-                        d = col * trans[p] - (total[ch, p] - prefix[ch, p]) * inv_1m[p]
-                        d_alpha[p] += g_c[ch, p] * d if w != _ZERO else _ZERO
-                    g_colors[k, ch] += s
-                # Channels from n_geo on pass no gradient to the geometry: only their own values'.
-                for ch in range(n_geo, n_ch):
-                    s = _ZERO
-                    for p in range(TILE_SIZE):
-                        s += weight[p] * g_c[ch, p]
-                    g_colors[k, ch] += s
-                gm_x = _ZERO
-                gm_y = _ZERO
-                gca = _ZERO
-                gcb = _ZERO
-                gcc = _ZERO
-                gop = _ZERO
-                for p in range(TILE_SIZE):
-                    w = weight[p]
-                    if w != _ZERO:
-                        dx = _F(x0 + p) + _HALF - mx
-                        gauss = gauss_px[p]
-                        raw = o * gauss
-                        trans[p] = trans[p] * (_ONE - min(_ALPHA_MAX, raw))
-                        if raw < _ALPHA_MAX:  # clamped alpha passes no gradient
-                            gop += d_alpha[p] * gauss
-                            g_q = -_HALF * raw * d_alpha[p]
-                            gca += g_q * dx * dx
-                            gcb += g_q * _F(2.0) * dx * dy
-                            gcc += g_q * dy * dy
-                            gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
-                            gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
-                g_means2d[k, 0] += gm_x
-                g_means2d[k, 1] += gm_y
-                g_conics[k, 0] += gca
-                g_conics[k, 1] += gcb
-                g_conics[k, 2] += gcc
-                g_opac[k] += gop
+                        if w != _ZERO:
+                            dx = _F(x0 + p) + _HALF - mx
+                            gauss = gauss_px[p]
+                            raw = o * gauss
+                            trans[p] = trans[p] * (_ONE - min(_ALPHA_MAX, raw))
+                            if raw < _ALPHA_MAX:  # clamped alpha passes no gradient
+                                gop += d_alpha[p] * gauss
+                                g_q = -_HALF * raw * d_alpha[p]
+                                gca += g_q * dx * dx
+                                gcb += g_q * _F(2.0) * dx * dy
+                                gcc += g_q * dy * dy
+                                gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
+                                gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
+                    g_means2d[k, 0] += gm_x
+                    g_means2d[k, 1] += gm_y
+                    g_conics[k, 0] += gca
+                    g_conics[k, 1] += gcb
+                    g_conics[k, 2] += gcc
+                    g_opac[k] += gop
+
+
+@njit(cache=True)
+def _balance(offsets, n_workers):
+    """Tiles grouped per worker so every worker gets about the same number of intersections.
+
+    Longest-processing-time-first: tiles by decreasing count, each to the least loaded worker.
+    Returns (tile_order, worker_starts): worker w runs tile_order[worker_starts[w]:worker_starts[w + 1]].
+    """
+    n_tiles = offsets.shape[0] - 1
+    cost = offsets[1:] - offsets[:-1] + 1
+    owner = np.empty(n_tiles, np.int64)
+    load = np.zeros(n_workers, np.int64)
+    for t in np.argsort(-cost, kind="mergesort"):
+        w = np.argmin(load)
+        owner[t] = w
+        load[w] += cost[t]
+    counts = np.zeros(n_workers + 1, np.int64)
+    for t in range(n_tiles):
+        counts[owner[t] + 1] += 1
+    starts = np.cumsum(counts)
+    cursor = starts[:-1].copy()
+    order = np.empty(n_tiles, np.int64)
+    for t in range(n_tiles):
+        order[cursor[owner[t]]] = t
+        cursor[owner[t]] += 1
+    return order, starts
+
+
+@njit(parallel=True, cache=True)
+def _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col):
+    """Per-intersection gradients summed per Gaussian: one column per thread, in intersection order.
+
+    Each column has one writer and a fixed summation order, so the result is deterministic.
+    """
+    n_ch = g_col.shape[1]
+    for j in prange(6 + n_ch):
+        for k in range(ids.shape[0]):
+            g = ids[k]
+            if j < 2:
+                s_m[g, j] += g_m[k, j]
+            elif j < 5:
+                s_cn[g, j - 2] += g_cn[k, j - 2]
+            elif j == 5:
+                s_op[g] += g_op[k]
+            else:
+                s_col[g, j - 6] += g_col[k, j - 6]
 
 
 def _q_max(opacities: np.ndarray) -> np.ndarray:
@@ -316,17 +372,19 @@ class _RasterizeCPU(torch.autograd.Function):
         t_final = np.empty((height, width), np.float32)
         n_contrib = np.empty((height, width), np.int32)
         tiles_x = math.ceil(width / TILE_SIZE)
-        _forward(offs, ids, m, cn, op, qm, col, bg, width, height, tiles_x, out, t_final, n_contrib)
-        ctx.arrays = (offs, ids, m, cn, op, qm, col, out, t_final, n_contrib)
+        order, starts = _balance(offs, max(1, numba.get_num_threads()))
+        _forward(
+            offs, order, starts, ids, m, cn, op, qm, col, bg, width, height, tiles_x, out, t_final, n_contrib
+        )
+        ctx.arrays = (offs, order, starts, ids, m, cn, op, qm, col, out, t_final, n_contrib)
         ctx.size = (width, height, tiles_x)
-        ctx.gaussian_ids = gaussian_ids
         ctx.n = means2d.shape[0]
         ctx.n_geo = n_geo
         return torch.from_numpy(out), torch.from_numpy(1.0 - t_final)
 
     @staticmethod
     def backward(ctx, grad_image, grad_alpha):
-        offs, ids, m, cn, op, qm, col, out, t_final, n_contrib = ctx.arrays
+        offs, order, starts, ids, m, cn, op, qm, col, out, t_final, n_contrib = ctx.arrays
         width, height, tiles_x = ctx.size
         n_isect, n_ch = ids.shape[0], col.shape[1]
         g_m = np.zeros((n_isect, 2), np.float32)
@@ -343,6 +401,8 @@ class _RasterizeCPU(torch.autograd.Function):
         )
         _backward(
             offs,
+            order,
+            starts,
             ids,
             m,
             cn,
@@ -363,17 +423,15 @@ class _RasterizeCPU(torch.autograd.Function):
             g_col,
             ctx.n_geo,
         )
-        idx = ctx.gaussian_ids
         n = ctx.n
-
-        def scatter(values: np.ndarray, shape: tuple[int, ...]) -> Tensor:
-            return torch.zeros(shape, dtype=torch.float32).index_add_(0, idx, torch.from_numpy(values))
-
+        s_m, s_cn, s_op, s_col = (np.zeros((n, 2), np.float32), np.zeros((n, 3), np.float32),
+                                  np.zeros(n, np.float32), np.zeros((n, n_ch), np.float32))  # fmt: skip
+        _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col)
         return (
-            scatter(g_m, (n, 2)),
-            scatter(g_cn, (n, 3)),
-            scatter(g_op, (n,)),
-            scatter(g_col, (n, n_ch)),
+            torch.from_numpy(s_m),
+            torch.from_numpy(s_cn),
+            torch.from_numpy(s_op),
+            torch.from_numpy(s_col),
             None,
             None,
             None,
