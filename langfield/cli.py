@@ -50,6 +50,20 @@ def _add_scene_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_ablation_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--no-depth",
+        action="store_true",
+        help="no depth loss L_D even if the scene has depths/ (default: L_D when all train views have one)",
+    )
+    p.add_argument(
+        "--no-lad",
+        action="store_true",
+        help="plain global depth loss only: no per-mask (language-aware) normalisation (eq. 6, 9)",
+    )
+    p.add_argument("--no-lop", action="store_true", help="no language-guided outlier pruning (eq. 14-16)")
+
+
 def _load_field_and_scene(out: str, scene_path: str | None):
     from langfield.field import LanguageField
     from langfield.scene import load_scene
@@ -76,12 +90,31 @@ def cmd_train(args: argparse.Namespace) -> int:
         num_gaussians=args.num_gaussians,
         bounds=args.bounds,
         densify=not args.no_densify,
+        depth=False if args.no_depth else None,
+        lad=not args.no_lad,
+        lop=not args.no_lop,
     )
     field = train(scene, cfg)
     field.meta["scene_args"] = _scene_args(args)
     field.save(args.out)
     test_psnr = evaluate_psnr(field, scene)
     print(summary_line(field, test_psnr) + f"; saved to {args.out}")
+    return 0
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from langfield.ablate import DEFAULT_CASES, format_table, run_ablation
+    from langfield.scene import load_scene
+    from langfield.trainer import TrainConfig
+
+    scene = load_scene(args.scene, **_scene_args(args))
+    cases = tuple(c.strip() for c in args.cases.split(",")) if args.cases else DEFAULT_CASES
+    base = TrainConfig(iterations=args.iterations, seed=args.seed, backend=args.backend)
+    rows = run_ablation(scene, base, cases, out_dir=args.out)
+    print(format_table(rows))
+    print(
+        f"ablation of {len(rows)} cases, {args.iterations} iterations each; table in {args.out}/ablation.md"
+    )
     return 0
 
 
@@ -212,8 +245,24 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="train colour only, even if the scene has language_features/ (default: language when it has)",
     )
+    _add_ablation_flags(p)
     _add_scene_flags(p)
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("ablate", help="train the paper's ablation cases on one scene and tabulate them")
+    p.add_argument("scene", help="scene folder")
+    p.add_argument("--out", default="ablate_out", help="folder for the fields and ablation.json/.md")
+    p.add_argument("--iterations", type=int, default=1500, help="training iterations per case (default 1500)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto")
+    p.add_argument(
+        "--cases",
+        default=None,
+        help="comma-separated subset of full,no-lop,no-lad,no-depth,per-gaussian,baseline "
+        "(default: all but baseline)",
+    )
+    _add_scene_flags(p)
+    p.set_defaults(func=cmd_ablate)
 
     p = sub.add_parser("render", help="render a trained field's views to PNGs")
     p.add_argument("out", help="folder of a trained field")

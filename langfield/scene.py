@@ -237,6 +237,22 @@ class Scene:
             return self._index[key]
         raise SceneError(f"{self._layout.source}: no view {key!r}; known views: {_listing(self._index)}")
 
+    def alpha(self, name: str | int) -> np.ndarray | None:
+        """[H, W] float32 coverage of the image's alpha channel at working resolution, or None.
+
+        Scenes whose images carry alpha (the Blender data, the built-in scene) have a background that is
+        not a surface; the depth loss leaves those pixels out.
+        """
+        i = self._position(name)
+        frame = self._layout.frames[i]
+        image = _read_rgba(frame.image_path)
+        if image.shape[2] != 4:
+            return None
+        alpha = image[..., 3]
+        if frame.distortion is not None:
+            alpha = _undistort(alpha, frame.camera, frame.distortion, cv2.INTER_LINEAR, cv2.BORDER_CONSTANT)
+        return np.ascontiguousarray(_resize(alpha, self.views[i].camera, cv2.INTER_AREA), dtype=np.float32)
+
     def _read_image(self, i: int) -> np.ndarray:
         frame = self._layout.frames[i]
         image = _read_rgba(frame.image_path)

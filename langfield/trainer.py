@@ -1,8 +1,11 @@
 """Training a field from a scene's training views: ``langfield.train(scene, TrainConfig(...))``.
 
-The loss is L = L_C (+ L_LF + L_D in later stages): L_C = 0.8 L1 + 0.2 D-SSIM with kornia's SSIM.
-Gaussians are initialised at random inside the scene bounds (COLMAP often fails on three views), sized
-to the scene, and densified by :class:`langfield.strategy.DensifyStrategy`.
+The loss is L = L_C + L_LF + L_D: L_C = 0.8 L1 + 0.2 D-SSIM with kornia's SSIM, L_LF the language
+loss on the rendered latents (geometry detached), L_D the depth distillation of
+:mod:`langfield.depth_loss` (LAD, eq. 6-11) on the hard and soft rendered depth. Gaussians are
+initialised at random inside the scene bounds (COLMAP often fails on three views), sized to the scene,
+densified by :class:`langfield.strategy.DensifyStrategy`, and pruned by language-guided outlier
+pruning (:mod:`langfield.lop`, eq. 14-16) every ``lop_every`` iterations.
 """
 
 from __future__ import annotations
@@ -28,13 +31,15 @@ from encoders.autoencoder import (
 )
 from encoders.cache import read_feature_cache
 from langfield import gaussians as G
+from langfield.depth_loss import LAMBDA_SA, LADTarget, depth_loss
 from langfield.field import LanguageField, color_field_spec
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
 from langfield.language import LANGUAGE_CHANNELS, N_LEVELS, LanguageHeads, language_loss
+from langfield.lop import LOP_GAMMA, LOP_INTERVAL, LOP_TAU, lop_prune
 from langfield.raster import resolve_backend
 from langfield.scene import Scene
-from langfield.strategy import DensifyStrategy
+from langfield.strategy import DensifyStrategy, remove
 from querying.metrics import psnr, ssim_map
 
 
@@ -70,6 +75,17 @@ class TrainConfig:
     language_hidden: int = 64
     per_gaussian_language_lr: float = 2.5e-3  # LangSplat's language_feature_lr
     autoencoder_iterations: int = 300
+    depth: bool | None = None  # None: when every training view has a depth prior (depths/)
+    lad: bool = True  # False: the plain global depth term only (the --no-lad ablation)
+    # L_D's normalised terms are scale-invariant: their gradient grows as 1 / std of the render, which
+    # is tiny at the random start (~1 % of the depth), and at weight 1 swamped L_C (PSNR 22 -> 11 dB on
+    # the built-in scene). Chosen by `langfield ablate`-style sweeps; see the README.
+    lambda_depth: float = 0.001
+    lambda_sa: float = LAMBDA_SA
+    lop: bool = True  # language-guided outlier pruning; needs the language field
+    lop_every: int = LOP_INTERVAL
+    lop_gamma: int = LOP_GAMMA
+    lop_tau: float = LOP_TAU
 
 
 Callback = Callable[[int, float, LanguageField], None]
@@ -108,6 +124,8 @@ class LanguageTargets:
     autoencoder: LanguageAutoencoder
     stats: dict[str, float]
     config: AutoencoderConfig
+    segments: dict[str, Tensor]  # view name -> [3, H, W] mask ids, -1 = none (LAD's masks)
+    prototypes: list[Tensor]  # per level, [P_l, 3] distinct latents of the masks used there (LOP)
 
 
 def language_targets(scene: Scene, cfg: TrainConfig, progress: bool = True) -> LanguageTargets | None:
@@ -134,14 +152,57 @@ def language_targets(scene: Scene, cfg: TrainConfig, progress: bool = True) -> L
         raise ValueError(f"{scene.root}/language_features: the training views' caches hold no masks")
     ae_cfg = AutoencoderConfig(iterations=cfg.autoencoder_iterations, seed=cfg.seed)
     autoencoder, stats = train_autoencoder(features, ae_cfg, progress=progress)
-    latents, valid = {}, {}
+    latents, valid, segments = {}, {}, {}
+    per_level: list[list[Tensor]] = [[] for _ in range(N_LEVELS)]
     with torch.no_grad():
         for name, cache in caches.items():
             z = autoencoder.encode(torch.from_numpy(cache.features))  # [M, 3]
             seg = torch.from_numpy(cache.segments.astype(np.int64))  # [3, H, W]
+            segments[name] = seg
             valid[name] = seg >= 0
             latents[name] = z[seg.clamp_min(0)] * valid[name][..., None]
-    return LanguageTargets(latents, valid, autoencoder, stats, ae_cfg)
+            for level in range(N_LEVELS):
+                ids = torch.unique(seg[level][seg[level] >= 0])
+                per_level[level].append(z[ids])
+    prototypes = [torch.unique(torch.cat(p), dim=0) for p in per_level]
+    return LanguageTargets(latents, valid, autoencoder, stats, ae_cfg, segments, prototypes)
+
+
+def depth_targets(
+    scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None
+) -> dict[str, LADTarget] | None:
+    """Each training view's depth prior and masks, prepared once for L_D; None when depth is off.
+
+    The masks are the feature cache's (the language masks, as LAD asks); a view without a cache gets
+    only the global term. Priors with NaN or inf pixels are rejected when the scene loads them; the
+    background of images with alpha (alpha < 0.5) is left out of both terms.
+    """
+    if cfg.depth is False:
+        return None
+    priors = {name: scene.depth(name) for name in scene.names("train")}
+    missing = [name for name, prior in priors.items() if prior is None]
+    if cfg.depth is None and missing:
+        return None
+    if missing:
+        raise ValueError(
+            f"{scene.root}/depths: no depth prior for training views {missing} (or train with --no-depth)"
+        )
+    if scene.depth_kind is None:
+        raise ValueError(
+            f"{scene.root}: depths/ needs depth_kind ('depth' or 'disparity') in transforms.json"
+        )
+    out = {}
+    for name, prior_np in priors.items():
+        alpha = scene.alpha(name)
+        if alpha is not None:  # the background of an RGBA image is no surface: not compared
+            prior_np = np.where(alpha >= 0.5, prior_np, np.nan).astype(np.float32)
+        prior = torch.from_numpy(prior_np)
+        if targets is not None:
+            seg = targets.segments[name]
+        else:
+            seg = torch.full((N_LEVELS, *prior.shape), -1, dtype=torch.int64)
+        out[name] = LADTarget.from_view(seg, prior, scene.depth_kind)
+    return out
 
 
 def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None = None) -> LanguageField:
@@ -203,6 +264,9 @@ def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None 
         "color_field": color_field_spec(grid, center, half_extent, cfg.color_hidden, cfg.color_freqs),
         "language": language_meta,
     }
+    # Text-encoder reference for queries (langfield.query): the scene's phrase table, if it has one.
+    table = scene.text_embeddings_path
+    meta["text_encoder"] = None if table is None else {"kind": "table", "path": str(Path(table).resolve())}
     return LanguageField(splats, color, meta, language, decoder)
 
 
@@ -273,7 +337,11 @@ def train(
     if cfg.iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {cfg.iterations}")
     targets = language_targets(scene, cfg, progress=progress)
+    depths = depth_targets(scene, cfg, targets)
     field = build_field(scene, cfg, targets)
+    field.meta["depth"] = None if depths is None else {"lad": cfg.lad, "kind": scene.depth_kind}
+    use_lop = cfg.lop and targets is not None and cfg.lop_every > 0
+    lop_rounds: list[dict[str, Any]] = []
     bounds = np.asarray(field.meta["bounds"])
     extent = float(np.linalg.norm(bounds[1] - bounds[0]) / 2)
     optimizers = make_optimizers(field, extent, cfg)
@@ -303,11 +371,15 @@ def train(
         frac = step / max(cfg.iterations - 1, 1)
         optimizers["means"].param_groups[0]["lr"] = means_lr0 * math.exp(math.log(0.01) * frac)
 
-        out = field.render(cameras[name], backend=cfg.backend)
+        out = field.render(cameras[name], backend=cfg.backend, hard_depth=depths is not None)
         loss = color_loss(out.rgb, images[name], cfg.lambda_dssim)
         if targets is not None:
             loss = loss + cfg.lambda_language * language_loss(
                 out.latents, targets.latents[name], targets.valid[name]
+            )
+        if depths is not None:
+            loss = loss + cfg.lambda_depth * depth_loss(
+                depths[name], out.depth_hard, out.depth, cfg.lambda_sa, lad=cfg.lad
             )
         loss.backward()
         if cfg.densify:
@@ -321,6 +393,12 @@ def train(
         for opt in optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if use_lop and (step + 1) % cfg.lop_every == 0:
+            lop_rounds.append(_prune_outliers(field, targets, optimizers, state, cfg, step + 1))
+            bar.write(
+                f"LOP at iteration {step + 1}: removed {lop_rounds[-1]['removed']} of "
+                f"{lop_rounds[-1]['before']} Gaussians"
+            )
         train_seconds += time.perf_counter() - t0
         bar.update(1)
         if step % 10 == 0:
@@ -334,6 +412,7 @@ def train(
             callback(step + 1, train_seconds, field)
     bar.close()
     field.meta.update(
+        lop=lop_rounds if use_lop else None,
         train_seconds=train_seconds,
         iterations=cfg.iterations,
         iterations_per_second=cfg.iterations / train_seconds if train_seconds > 0 else None,
@@ -342,6 +421,27 @@ def train(
     if callback is not None:
         callback(cfg.iterations, train_seconds, field)
     return field
+
+
+@torch.no_grad()
+def _prune_outliers(
+    field: LanguageField,
+    targets: LanguageTargets,
+    optimizers: dict[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    cfg: TrainConfig,
+    step: int,
+) -> dict[str, Any]:
+    """One LOP round (eq. 14-16): removes the language-group outliers, optimizer state kept in step."""
+    before = field.num_gaussians
+    latents = field.gaussian_latents()
+    result = lop_prune(
+        field.splats["means"].detach(), latents, targets.prototypes, gamma=cfg.lop_gamma, tau=cfg.lop_tau
+    )
+    if result.num_pruned:
+        remove(field.splats, optimizers, state, result.prune)
+    return {"iteration": step, "before": before, "removed": result.num_pruned,
+            "removed_by_level": list(result.pruned_by_level)}  # fmt: skip
 
 
 def summary_line(field: LanguageField, test_psnr: float | None) -> str:

@@ -1,0 +1,106 @@
+"""``langfield ablate SCENE``: the paper's Table 3 cases on one scene, same seed and budget, one table.
+
+Cases (each a :class:`~langfield.trainer.TrainConfig` change from the full method):
+
+- ``full``: hash-grid language features, LAD (eq. 6-11) and LOP (eq. 14-16);
+- ``no-lop``: without language-guided outlier pruning;
+- ``no-lad``: the plain global depth loss only (no per-mask normalisation);
+- ``no-depth``: without L_D;
+- ``per-gaussian``: one learnable latent per Gaussian instead of the hash grid (LangSplat's way);
+- ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP; the comparison of
+  issue 5's mIoU target.
+
+Each row: mIoU / mAcc (where the scene has labels and querying can score them), PSNR and SSIM on test
+views, aligned depth error and floaters (scenes with ground truth), training seconds and Gaussians.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from langfield.evaluate import evaluate
+from langfield.geometry_eval import count_floaters, depth_errors
+from langfield.scene import Scene
+from langfield.trainer import TrainConfig, train
+
+CASES: dict[str, dict[str, Any]] = {
+    "full": {},
+    "no-lop": {"lop": False},
+    "no-lad": {"lad": False},
+    "no-depth": {"depth": False},
+    "per-gaussian": {"language_features": "per-gaussian"},
+    "baseline": {"language_features": "per-gaussian", "depth": False, "lop": False},
+}
+DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian")
+
+
+def run_case(scene: Scene, cfg: TrainConfig, out: Path | None = None, progress: bool = True) -> dict:
+    """Trains one configuration and returns its table row (and saves the field to ``out`` if given)."""
+    field = train(scene, cfg, progress=progress)
+    if out is not None:
+        field.save(out)
+    report = evaluate(field, scene)
+    depth = depth_errors(field, scene)
+    floaters = count_floaters(field, scene)
+    return {
+        "mIoU": report.get("mIoU"),
+        "mAcc": report.get("mAcc"),
+        "PSNR": report["PSNR"],
+        "SSIM": report["SSIM"],
+        "depth_abs_rel": None if depth is None else depth["abs_rel"],
+        "floaters": None if floaters is None else floaters["floaters"],
+        "train_seconds": field.meta["train_seconds"],
+        "ms_per_iteration": 1000 * field.meta["train_seconds"] / max(cfg.iterations, 1),
+        "num_gaussians": field.num_gaussians,
+        "lop_removed": sum(r["removed"] for r in field.meta.get("lop") or []),
+    }
+
+
+def run_ablation(
+    scene: Scene,
+    base: TrainConfig,
+    cases: tuple[str, ...] = DEFAULT_CASES,
+    out_dir: str | Path | None = None,
+    progress: bool = True,
+) -> dict[str, dict]:
+    """Runs ``cases`` with ``base``'s seed and budget; returns {case: row}; writes ablation.json/.md."""
+    unknown = [c for c in cases if c not in CASES]
+    if unknown:
+        raise ValueError(f"unknown ablation case(s) {unknown}; choose from {', '.join(CASES)}")
+    out = Path(out_dir) if out_dir is not None else None
+    rows: dict[str, dict] = {}
+    for case in cases:
+        cfg = replace(base, **CASES[case])
+        rows[case] = run_case(scene, cfg, None if out is None else out / case, progress)
+        if out is not None:  # written after every case: an interrupted run keeps what it measured
+            write_table(rows, out, base)
+    return rows
+
+
+def format_table(rows: dict[str, dict]) -> str:
+    """A Markdown table of the rows."""
+
+    def fmt(v: Any, digits: int) -> str:
+        return "n/a" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
+
+    head = "| case | mIoU | mAcc | PSNR | SSIM | depth AbsRel | floaters | Gaussians | s | ms/it |"
+    lines = [head, "|" + "---|" * 10]
+    for case, r in rows.items():
+        lines.append(
+            f"| {case} | {fmt(r['mIoU'], 3)} | {fmt(r['mAcc'], 3)} | {fmt(r['PSNR'], 2)} | "
+            f"{fmt(r['SSIM'], 3)} | {fmt(r['depth_abs_rel'], 4)} | {fmt(r['floaters'], 0)} | "
+            f"{r['num_gaussians']} | {r['train_seconds']:.0f} | {r['ms_per_iteration']:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def write_table(rows: dict[str, dict], out: Path, base: TrainConfig) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"iterations": base.iterations, "seed": base.seed, "rows": rows}
+    (out / "ablation.json").write_text(json.dumps(meta, indent=2) + "\n")
+    (out / "ablation.md").write_text(
+        f"# Ablation ({base.iterations} iterations, seed {base.seed})\n\n{format_table(rows)}\n"
+    )

@@ -1,0 +1,105 @@
+"""Geometry figures for scenes that know their ground truth (the built-in synthetic scene).
+
+- :func:`aligned_depth_error`: novel-view depth error after a per-view least-squares scale-and-shift fit
+  to the true depth (monocular priors and sparse-view renders agree with the truth only up to those);
+- :func:`count_floaters`: Gaussians whose centre lies farther than a tolerance from every true surface.
+
+Both are used by ``langfield ablate`` to show what LAD and LOP change (issue: depth distillation and
+outlier pruning). Scenes without ``gt/`` give ``None``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from langfield.camera import Camera
+from langfield.field import LanguageField
+from langfield.scene import Scene
+
+FLOATER_TOLERANCE = 0.03  # x the scene bounds' diagonal: farther from every surface is a floater
+MIN_ALPHA = 0.5  # pixels the render covers less than this are left out of the depth error
+
+
+def ray_lengths(camera: Camera) -> np.ndarray:
+    """[H, W] length of the camera-space ray through each pixel centre with z = 1."""
+    u = (np.arange(camera.width) + 0.5 - camera.cx) / camera.fx
+    v = (np.arange(camera.height) + 0.5 - camera.cy) / camera.fy
+    return np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)
+
+
+def aligned_depth_error(
+    rendered: np.ndarray, alpha: np.ndarray, gt_distance: np.ndarray, min_alpha: float = MIN_ALPHA
+) -> dict[str, float] | None:
+    """Depth error after fitting ``a * rendered + b`` to the truth by least squares.
+
+    Args:
+        rendered: [H, W] soft depth (alpha-blended distance to the camera centre).
+        alpha: [H, W] accumulated opacity; the depth is divided by it (the blend's weights sum to alpha).
+        gt_distance: [H, W] true distance to the camera centre; 0 or non-finite where there is none.
+        min_alpha: pixels with less coverage are skipped.
+
+    Returns:
+        {"abs_rel": mean |fit - gt| / gt, "mae": mean |fit - gt| (scene units), "pixels": count}, or
+        None when fewer than 10 pixels qualify.
+    """
+    valid = np.isfinite(gt_distance) & (gt_distance > 0) & (alpha >= min_alpha) & np.isfinite(rendered)
+    if valid.sum() < 10:
+        return None
+    d = (rendered[valid] / alpha[valid]).astype(np.float64)
+    g = gt_distance[valid].astype(np.float64)
+    design = np.stack([d, np.ones_like(d)], axis=1)
+    (a, b), *_ = np.linalg.lstsq(design, g, rcond=None)
+    err = np.abs(a * d + b - g)
+    return {"abs_rel": float(np.mean(err / g)), "mae": float(np.mean(err)), "pixels": int(valid.sum())}
+
+
+def depth_errors(field: LanguageField, scene: Scene, split: str = "test") -> dict | None:
+    """Per-view and mean aligned depth error on ``split``; None without ``gt/depth/``."""
+    folder = Path(scene.root) / "gt" / "depth"
+    if not folder.is_dir():
+        return None
+    views = {}
+    with torch.no_grad():
+        for name in scene.names(split):
+            path = folder / f"{name}.npy"
+            if not path.is_file():
+                continue
+            cam = scene.camera(name)
+            gt_z = np.load(path).astype(np.float32)
+            if gt_z.shape != (cam.height, cam.width):
+                import cv2
+
+                gt_z = cv2.resize(gt_z, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+            out = field.render(cam)
+            err = aligned_depth_error(out.depth.numpy(), out.alpha.numpy(), gt_z * ray_lengths(cam))
+            if err is not None:
+                views[name] = err
+    if not views:
+        return None
+    return {
+        "abs_rel": float(np.mean([v["abs_rel"] for v in views.values()])),
+        "mae": float(np.mean([v["mae"] for v in views.values()])),
+        "views": views,
+    }
+
+
+def count_floaters(field: LanguageField, scene: Scene, tolerance: float = FLOATER_TOLERANCE) -> dict | None:
+    """Gaussians farther than ``tolerance`` x the bounds' diagonal from every true surface.
+
+    Returns:
+        {"floaters": count, "fraction": of all Gaussians, "tolerance": in scene units}, or None when the
+        scene has no ``gt/mesh.ply``.
+    """
+    if not (Path(scene.root) / "gt" / "mesh.ply").is_file():
+        return None
+    from langfield.synthetic import distance_to_surfaces
+
+    bounds = np.asarray(field.meta["bounds"], dtype=np.float64)
+    tol = float(tolerance * np.linalg.norm(bounds[1] - bounds[0]))
+    means = field.splats["means"].detach().numpy()
+    dist = distance_to_surfaces(scene.root, means)
+    count = int((dist > tol).sum())
+    return {"floaters": count, "fraction": count / max(len(means), 1), "tolerance": tol}
