@@ -112,6 +112,23 @@ def language_overhead(scene: Scene, iterations: int = 100, seed: int = 0) -> dic
     return result
 
 
+def lad_lop_overhead(scene: Scene, iterations: int = 1000, seed: int = 0) -> dict[str, float]:
+    """Milliseconds per iteration of the full method against the same run without L_D and LOP.
+
+    Averaged over a whole run of ``iterations`` (LOP fires every 1000 by default, so a run of 1000
+    includes one round); both runs train the language field.
+    """
+    result: dict[str, float] = {}
+    for name, extra in (("plain", {"depth": False, "lop": False}), ("lad_lop", {})):
+        field = train(scene, TrainConfig(iterations=iterations, seed=seed, **extra), progress=False)
+        result[f"{name}_ms_per_iteration"] = 1000 * field.meta["train_seconds"] / iterations
+        if name == "lad_lop":
+            result["lop_removed"] = sum(r["removed"] for r in field.meta.get("lop") or [])
+            result["depth"] = field.meta.get("depth") is not None
+    result["ratio"] = result["lad_lop_ms_per_iteration"] / result["plain_ms_per_iteration"]
+    return result
+
+
 def plot_curve(points: list[dict], path: Path) -> None:
     """PSNR against training seconds and against Gaussian count, one PNG."""
     import matplotlib
@@ -155,6 +172,13 @@ def format_table(result: dict) -> str:
             f"(+{100 * (lo['ratio'] - 1):.0f} %); "
             f"autoencoder once per scene {lo.get('autoencoder_seconds', 0):.1f} s"
         )
+    oh = result.get("lad_lop_overhead")
+    if oh:
+        lines.append(
+            f"training iteration: {oh['plain_ms_per_iteration']:.0f} ms without L_D and LOP, "
+            f"{oh['lad_lop_ms_per_iteration']:.0f} ms with both (+{100 * (oh['ratio'] - 1):.0f} %, "
+            f"LOP removed {oh['lop_removed']} Gaussians)"
+        )
     if result.get("curve"):
         lines.append("training curve (novel views):")
         lines.append("  iterations   seconds    PSNR   Gaussians")
@@ -174,6 +198,7 @@ def run_bench(
     json_path: Path | None = None,
     plot_path: Path | None = None,
     seed: int = 0,
+    overhead_iterations: int = 1000,
 ) -> dict:
     """Runs both benchmarks on ``scene``; writes JSON and the plot where asked."""
     camera = scene.cameras("train")[0]
@@ -188,6 +213,12 @@ def run_bench(
     }
     has_language = all(scene.feature_paths(n) is not None for n in scene.names("train"))
     result["language_overhead"] = language_overhead(scene, seed=seed) if has_language else None
+    has_depth = all(scene.depth(n) is not None for n in scene.names("train"))
+    result["lad_lop_overhead"] = (
+        lad_lop_overhead(scene, overhead_iterations, seed)
+        if has_language and has_depth and overhead_iterations > 0
+        else None
+    )
     result["curve"] = training_curve(scene, iterations, every, seed) if iterations > 0 else []
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)

@@ -177,6 +177,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         num_gaussians=args.num_gaussians,
         json_path=json_path,
         plot_path=plot,
+        overhead_iterations=args.overhead_iterations,
     )
     print(format_table(result))
     b = result["backends"]
@@ -287,6 +288,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int, default=1500, help="training iterations of the curve (0: skip)")
     p.add_argument("--every", type=int, default=250, help="curve checkpoint interval")
     p.add_argument("--num-gaussians", type=int, default=20000, help="Gaussians of the backend timing")
+    p.add_argument(
+        "--overhead-iterations",
+        type=int,
+        default=1000,
+        help="run length for the L_D + LOP cost against a plain run (0: skip; default 1000)",
+    )
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="generate the built-in scene, train on 3 views, render and report")
@@ -296,6 +303,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=160)
     p.add_argument("--height", type=int, default=120)
     p.set_defaults(func=cmd_demo)
+
+    from langfield.cli_models import add_parsers
+
+    add_parsers(sub)  # export, preprocess
     return parser
 
 

@@ -145,8 +145,11 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     json_path = out / "b.json"
     args = ["bench", "--scene", str(scene_dir), "--iterations", "20", "--every", "10"]
     args += ["--num-gaussians", "300", "--out", str(out), "--json", str(json_path)]
+    args += ["--overhead-iterations", "12"]
     assert main(args) == 0
     result = json.loads(json_path.read_text())
+    overhead = result["lad_lop_overhead"]
+    assert overhead["depth"] and overhead["plain_ms_per_iteration"] > 0 and overhead["ratio"] > 0
     assert set(result["backends"]) == {"torch", "cpu"}
     for name, b in result["backends"].items():
         assert b["step_ms"] > 0, name
