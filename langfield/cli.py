@@ -152,8 +152,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if report["PSNR"] is not None
         else "no test views"
     )
+    query_txt = (
+        f", mIoU {report['mIoU']:.3f}, mAcc {report['mAcc']:.3f}" if report.get("mIoU") is not None else ""
+    )
     print(
-        f"{len(report['views'])} test views: {psnr_txt}; {report['num_gaussians']} Gaussians, "
+        f"{len(report['views'])} test views: {psnr_txt}{query_txt}; {report['num_gaussians']} Gaussians, "
         f"{report['field_bytes'] / 1e6:.1f} MB; report {json_path} and {md}"
     )
     return 0
@@ -197,22 +200,41 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     t0 = time.perf_counter()
     scene_dir = make_room(out / "scene", seed=args.seed, width=args.width, height=args.height)
-    print(f"[1/4] built-in scene written to {scene_dir}")
+    print(f"[1/5] built-in scene written to {scene_dir}")
     scene = load_scene(scene_dir)
-    print(f"[2/4] training on {len(scene.names('train'))} views ({args.iterations} iterations)")
+    print(f"[2/5] training on {len(scene.names('train'))} views ({args.iterations} iterations)")
     field = train(scene, TrainConfig(iterations=args.iterations, seed=args.seed))
     field.meta["scene_args"] = {"resolution": 1.0, "views": None, "n_views": None}
     field.save(out / "field")
     pictures = out / "renders"
-    print(f"[3/4] rendering {len(scene.names('test'))} novel views to {pictures}")
+    print(f"[3/5] rendering and scoring {len(scene.names('test'))} novel views to {pictures}")
     report = evaluate(field, scene, save_dir=pictures)
     md = write_report(report, out / "report.json", pictures)
-    print(f"[4/4] report: {out / 'report.json'} and {md}")
+    print(f"[4/5] report: {out / 'report.json'} and {md}")
+    queries = out / "queries"
+    print(f"[5/5] text queries on the novel views ('couch' is a synonym the table knows) -> {queries}")
+    from langfield.cli_query import cmd_query
+
+    query_args = argparse.Namespace(
+        out=str(out / "field"),
+        phrases=list(DEMO_PHRASES),
+        views="test",
+        save=str(queries),
+        scene=str(scene_dir),
+        text_encoder=None,
+        exact=False,
+    )
+    cmd_query(query_args)
+    miou = report.get("mIoU")
+    query_txt = f", novel-view mIoU {miou:.3f}, mAcc {report['mAcc']:.3f}" if miou is not None else ""
     print(
-        summary_line(field, report["PSNR"]) + f", SSIM {report['SSIM']:.3f}; "
-        f"demo took {time.perf_counter() - t0:.0f} s; pictures in {pictures}"
+        summary_line(field, report["PSNR"]) + f", SSIM {report['SSIM']:.3f}{query_txt}; "
+        f"demo took {time.perf_counter() - t0:.0f} s; pictures in {pictures} and {queries}"
     )
     return 0
+
+
+DEMO_PHRASES = ("sofa", "couch", "lamp", "mug")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -305,8 +327,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     from langfield.cli_models import add_parsers
+    from langfield.cli_query import add_parser as add_query_parser
 
     add_parsers(sub)  # export, preprocess
+    add_query_parser(sub)
     return parser
 
 

@@ -1,12 +1,18 @@
 """Evaluation of a trained field on a scene's test views: ``langfield.evaluate(field, scene)``.
 
-The report's top-level keys are fixed by FORMAT.md ("Evaluation report"). Metrics that need a later
-stage (mIoU, mAcc, feature cosine) are ``null`` until the field can provide them.
+The report's top-level keys are fixed by FORMAT.md ("Evaluation report"). Text queries are scored as
+LangSplat scores them (``eval/evaluate_iou_loc.py``): for every test view and every phrase of its
+``segmentations/`` folder, the IoU of the query's mask with the ground truth and the localization hit,
+from relevancy maps of exactly decoded rendered latents (no lattice), pixels the field leaves empty
+taken out as queries do (:func:`langfield.query.fill_empty`); mIoU and mAcc are their means over all
+(view, phrase) pairs (:func:`querying.evaluation.summarize_queries`). Metrics the scene or
+the field cannot provide (no labels, no feature cache, no language) are ``null``.
 """
 
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -15,41 +21,80 @@ import numpy as np
 import torch
 
 from encoders.cache import read_feature_cache
-from encoders.protocols import LEVELS
+from encoders.protocols import LEVELS, TextEncoder
+from encoders.text_table import UnknownPhraseError
 from langfield.field import LanguageField
+from langfield.query import fill_empty, text_encoder_for
 from langfield.scene import Scene
+from querying.evaluation import query_record, summarize_queries
 from querying.metrics import psnr, ssim
+from querying.relevancy import CANONICAL_PHRASES, relevancy, relevancy_mask
+from querying.visualize import contact_sheet, heatmap_overlay, mask_overlay
+
+# Ground truth outline colour in the query pictures (the prediction is querying.visualize's MASK_COLOR).
+GT_COLOR = (40, 220, 40)
 
 
 def evaluate(
-    field: LanguageField, scene: Scene, split: str = "test", save_dir: str | Path | None = None
+    field: LanguageField,
+    scene: Scene,
+    split: str = "test",
+    save_dir: str | Path | None = None,
+    text_encoder: TextEncoder | str | Path | None = None,
 ) -> dict:
-    """Renders every view of ``split`` and scores it against the scene's images.
+    """Renders every view of ``split`` and scores it against the scene's images and text labels.
 
     Args:
         field: a trained field.
         scene: the scene it was trained on (any resolution; the test cameras are rendered as given).
         split: which views to score.
-        save_dir: if given, rendered RGB and depth PNGs are written there.
+        save_dir: if given, rendered RGB and depth PNGs are written there, and per labelled view a
+            contact sheet of the queries (``<view>_queries.png``: heat maps, then masks with the ground
+            truth outlined).
+        text_encoder: embeds the labels' phrases (see :func:`langfield.query.text_encoder_for`); default
+            the field's own.
 
     Returns:
-        The FORMAT.md report as a dict.
+        The FORMAT.md report as a dict; ``views[i]["queries"]`` is ``{phrase: {"iou", "hit"}}``.
+
+    Raises:
+        ValueError: a labelled phrase the text encoder does not know (the message names it).
     """
     views: list[dict[str, Any]] = []
     cosines: list[list[float]] = []
     save = Path(save_dir) if save_dir is not None else None
+    names = scene.names(split)
+    labels = {name: scene.segmentations(name) for name in names} if field.decoder is not None else {}
+    embeddings = _label_embeddings(field, labels, text_encoder, scene)
     with torch.no_grad():
-        for name in scene.names(split):
+        for name in names:
             out = field.render(scene.camera(name))
             target = torch.from_numpy(scene.image(name))
-            if out.latents is not None and scene.feature_paths(name) is not None:
-                cosines.append(feature_cosine(field, out.latents, scene, name))
+            has_cache = out.latents is not None and scene.feature_paths(name) is not None
+            scored = embeddings is not None and out.latents is not None and bool(labels[name])
+            decoded = field.decode(out.latents) if has_cache or scored else None  # [3, H, W, 512]
+            if has_cache:
+                cosines.append(feature_cosine(decoded, scene, name))
+            queries = {}
+            if scored:
+                phrases, phrase_embeddings, canonical_embeddings = embeddings
+                maps = relevancy(decoded, phrase_embeddings, canonical_embeddings)  # [P, 3, H, W]
+                maps = fill_empty(maps, out.alpha)
+                queries = score_queries(maps, phrases, labels[name])
+                if save is not None:
+                    write_query_sheet(save, name, out.rgb, maps, phrases, labels[name], queries)
             views.append(
-                {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target), "queries": {}}
+                {
+                    "name": name,
+                    "PSNR": psnr(out.rgb, target),
+                    "SSIM": ssim(out.rgb, target),
+                    "queries": queries,
+                }
             )
             if save is not None:
                 write_render_pngs(save, name, out.rgb.numpy(), out.depth.numpy(), out.alpha.numpy())
     m = field.meta
+    summary = summarize_queries(q for v in views for q in v["queries"].values())
 
     def mean(key: str) -> float | None:
         return float(np.mean([v[key] for v in views])) if views else None
@@ -57,8 +102,8 @@ def evaluate(
     return {
         "PSNR": mean("PSNR"),
         "SSIM": mean("SSIM"),
-        "mIoU": None,
-        "mAcc": None,
+        "mIoU": summary["mIoU"],
+        "mAcc": summary["mAcc"],
         "train_seconds": m.get("train_seconds"),
         "iterations": m.get("iterations"),
         "iterations_per_second": m.get("iterations_per_second"),
@@ -82,11 +127,79 @@ def _level_means(rows: list[list[float]]) -> dict[str, float | None] | None:
     return means
 
 
-def feature_cosine(field: LanguageField, latents: torch.Tensor, scene: Scene, name: str) -> list[float]:
+def _label_embeddings(
+    field: LanguageField,
+    labels: dict[str, dict[str, np.ndarray]],
+    text_encoder: TextEncoder | str | Path | None,
+    scene: Scene,
+) -> tuple[list[str], torch.Tensor, torch.Tensor] | None:
+    """(phrases, [P, D] phrase embeddings, [C, D] canonical embeddings) of every labelled phrase, or
+    None when the scene has no labels or no text encoder can be found (with a warning)."""
+    phrases = sorted({phrase for masks in labels.values() for phrase in masks})
+    if not phrases:
+        return None
+    try:
+        encoder = text_encoder_for(field, text_encoder)
+    except ValueError as err:
+        warnings.warn(
+            f"{scene.root}/segmentations: text queries not scored (mIoU, mAcc null): {err}", stacklevel=3
+        )
+        return None
+    try:
+        rows = torch.from_numpy(np.asarray(encoder.encode_text(phrases + list(CANONICAL_PHRASES)))).float()
+    except UnknownPhraseError as err:
+        raise ValueError(f"{scene.root}/segmentations: a labelled phrase has no embedding: {err}") from err
+    return phrases, rows[: len(phrases)], rows[len(phrases) :]
+
+
+def score_queries(
+    maps: torch.Tensor, phrases: list[str], labels: dict[str, np.ndarray]
+) -> dict[str, dict[str, float | bool]]:
+    """``{phrase: {"iou", "hit"}}`` of one view (FORMAT.md).
+
+    Args:
+        maps: [P, 3, H, W] relevancy of every phrase of ``phrases`` in the view.
+        phrases: the phrases of ``maps``' rows.
+        labels: {phrase: [H, W] bool ground-truth mask} of the view.
+    """
+    return {
+        phrase: query_record(maps[phrases.index(phrase)], torch.from_numpy(gt))
+        for phrase, gt in sorted(labels.items())
+    }
+
+
+def write_query_sheet(
+    folder: Path,
+    name: str,
+    rgb: torch.Tensor,
+    maps: torch.Tensor,
+    phrases: list[str],
+    labels: dict[str, np.ndarray],
+    queries: dict[str, dict[str, float | bool]],
+) -> Path:
+    """``<name>_queries.png``: per labelled phrase, its heat map (top row) and its mask with the ground
+    truth outlined in green (bottom row), labelled with the IoU and whether localization hit."""
+    folder.mkdir(parents=True, exist_ok=True)
+    order = sorted(labels)
+    result = relevancy_mask(maps[[phrases.index(p) for p in order]])
+    heats, masks, captions = [], [], []
+    for i, phrase in enumerate(order):
+        heats.append(heatmap_overlay(rgb, result.normalized[i]))
+        outlined = mask_overlay(rgb, labels[phrase], color=GT_COLOR, alpha=0.0)
+        masks.append(mask_overlay(outlined, result.mask[i]))
+        record = queries[phrase]
+        captions.append(f"IoU {record['iou']:.2f} {'hit' if record['hit'] else 'miss'}")
+    sheet = contact_sheet(heats + masks, order + captions, columns=len(order))
+    path = folder / f"{name}_queries.png"
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    return path
+
+
+def feature_cosine(decoded: torch.Tensor, scene: Scene, name: str) -> list[float]:
     """Per level, the mean cosine between decoded rendered latents and the view's mask features.
 
     Args:
-        latents: [3, H, W, 3] rendered latents of view ``name``.
+        decoded: [3, H, W, 512] decoded rendered latents of view ``name`` (``field.decode(latents)``).
 
     Returns:
         Three numbers (subpart, part, whole), averaged over the pixels that have a mask at that level;
@@ -94,7 +207,6 @@ def feature_cosine(field: LanguageField, latents: torch.Tensor, scene: Scene, na
     """
     cam = scene.camera(name)
     cache = read_feature_cache(*scene.feature_paths(name), expected_hw=(cam.height, cam.width))
-    decoded = field.decode(latents)  # [3, H, W, 512]
     features = torch.from_numpy(cache.features)
     result = []
     for level in range(len(LEVELS)):
@@ -161,10 +273,16 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
         )
         + " |",
         "",
-        "| view | PSNR | SSIM |",
-        "|---|---|---|",
+        "| view | PSNR | SSIM | mIoU | mAcc |",
+        "|---|---|---|---|---|",
     ]
-    lines += [f"| {v['name']} | {v['PSNR']:.2f} | {v['SSIM']:.3f} |" for v in report["views"]]
+    for v in report["views"]:
+        per_view = summarize_queries(v["queries"].values())
+        lines.append(
+            f"| {v['name']} | {v['PSNR']:.2f} | {v['SSIM']:.3f} | "
+            f"{fmt(per_view['mIoU'])} | {fmt(per_view['mAcc'])} |"
+        )
+    lines += _phrase_table(report["views"])
     if pictures is not None:
         rel = Path(pictures).resolve()
         lines += ["", "## Renders (RGB, depth)", ""]
@@ -173,8 +291,26 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
                 p = rel / f"{v['name']}_{kind}.png"
                 if p.exists():
                     lines.append(f"![{v['name']} {kind}]({_relative(p, md.parent)})")
+        sheets = [(v["name"], rel / f"{v['name']}_queries.png") for v in report["views"]]
+        sheets = [(name, p) for name, p in sheets if p.exists()]
+        if sheets:
+            lines += ["", "## Text queries (heat maps; masks, ground truth outlined in green)", ""]
+            lines += [f"![{name} queries]({_relative(p, md.parent)})" for name, p in sheets]
     md.write_text("\n".join(lines) + "\n")
     return md
+
+
+def _phrase_table(views: list[dict[str, Any]]) -> list[str]:
+    """Markdown rows of each labelled phrase's mean IoU and hit rate over the views that label it."""
+    phrases = sorted({phrase for v in views for phrase in v["queries"]})
+    if not phrases:
+        return []
+    lines = ["", "| phrase | views | mIoU | mAcc |", "|---|---|---|---|"]
+    for phrase in phrases:
+        records = [v["queries"][phrase] for v in views if phrase in v["queries"]]
+        summary = summarize_queries(records)
+        lines.append(f"| {phrase} | {len(records)} | {summary['mIoU']:.3f} | {summary['mAcc']:.3f} |")
+    return lines
 
 
 def _relative(path: Path, start: Path) -> str:

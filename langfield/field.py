@@ -1,10 +1,12 @@
 """LanguageField: trained Gaussians with their neural colour field; render, save, load.
 
 On disk (FORMAT.md): ``field.safetensors`` (every tensor, no pickle), ``field.json`` (config, format
-version, bounds, training views, timings and the checksum of the tensors file) and ``gaussians.ply``
-(standard 3DGS). Files are first written under temporary names in the output folder, then renamed into
-place with ``field.json`` last; ``field.json`` names the SHA-256 of the tensors it belongs to, so a
-field interrupted half-way through a save never loads silently mixed.
+version, bounds, training views, text-encoder reference, timings and the checksum of the tensors file),
+``gaussians.ply`` (standard 3DGS) and, when the text encoder is a scene's phrase table, a copy of it
+(``text_embeddings.npz``) so that the folder answers text queries on its own. Files are first written
+under temporary names in the output folder, then renamed into place with ``field.json`` last;
+``field.json`` names the SHA-256 of the tensors and of the table it belongs to, so a field interrupted
+half-way through a save never loads silently mixed.
 """
 
 from __future__ import annotations
@@ -12,9 +14,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
+import warnings
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
@@ -30,7 +34,16 @@ from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, Language
 from langfield.ply import write_gaussian_ply
 from langfield.raster import Backend, rasterize
 
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from encoders.protocols import TextEncoder
+    from langfield.query import Query
+    from langfield.scene import Scene
+
 FORMAT_VERSION = 1
+# The copy of the scene's phrase table a saved field keeps beside field.json (text-encoder "table").
+TEXT_TABLE_FILE = "text_embeddings.npz"
 HARD_DEPTH_OPACITY = 0.99  # mu in eq. 7 (the paper; DNGaussian uses 0.95)
 
 
@@ -67,6 +80,9 @@ class LanguageField(nn.Module):
         meta: what field.json records (config, bounds, training views, background, timings, language).
         language: the hash-grid language heads, if the field has hash-grid language features.
         decoder: the scene's autoencoder decoder (latent -> 512-d CLIP space), if the field has language.
+
+    Attributes:
+        folder: the folder the field was loaded from, else None.
     """
 
     def __init__(
@@ -83,6 +99,7 @@ class LanguageField(nn.Module):
         self.meta = meta
         self.language = language
         self.decoder = decoder
+        self.folder: Path | None = None
         # The language grid may reuse the colour grid's cell look-up when both share the layout.
         self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
 
@@ -185,6 +202,24 @@ class LanguageField(nn.Module):
             rendered_latents,
         )
 
+    def query(
+        self,
+        phrases: str | Sequence[str],
+        text_encoder: TextEncoder | str | Path | None = None,
+        *,
+        scene: Scene | None = None,
+    ) -> Query:
+        """Text query of the field: ``field.query("sofa")`` or ``field.query(["sofa", "lamp"])``.
+
+        Phrases are embedded once by the field's text encoder, or by ``text_encoder`` (an encoder, a
+        ``text_embeddings.npz`` or a CLIP model folder); the :class:`~langfield.query.Query` is
+        evaluated lazily per camera (a Camera, or a view of ``scene`` by name or index). See
+        :func:`langfield.query.make_query`.
+        """
+        from langfield.query import make_query
+
+        return make_query(self, phrases, text_encoder, scene=scene)
+
     # ------------------------------------------------------------------ persistence
 
     def state_tensors(self) -> dict[str, Tensor]:
@@ -219,11 +254,37 @@ class LanguageField(nn.Module):
         meta = dict(
             self.meta, format_version=FORMAT_VERSION, num_gaussians=self.num_gaussians, tensors_sha256=digest
         )
+        meta.pop("text_table_sha256", None)
+        table, table_copy = self._text_table(), out / TEXT_TABLE_FILE
+        if table is not None:
+            if not (table_copy.exists() and os.path.samefile(table, table_copy)):
+                shutil.copyfile(table, out / (TEXT_TABLE_FILE + ".tmp"))
+                os.replace(out / (TEXT_TABLE_FILE + ".tmp"), table_copy)
+            meta["text_table_sha256"] = _sha256(table_copy)
         json_tmp = out / "field.json.tmp"
         json_tmp.write_text(json.dumps(meta, indent=2, default=_json_default))
         os.replace(tensors_tmp, out / "field.safetensors")
         os.replace(json_tmp, out / "field.json")
+        if table is None and table_copy.exists():
+            table_copy.unlink()  # an older field's table, which this field does not use
         return out
+
+    def _text_table(self) -> Path | None:
+        """The phrase table to copy beside field.json: this field's copy if it was loaded with one,
+        else the table ``meta["text_encoder"]`` names; None if the encoder is not a table."""
+        ref = self.meta.get("text_encoder")
+        if not ref or ref.get("kind") != "table":
+            return None
+        if self.folder is not None and (self.folder / TEXT_TABLE_FILE).is_file():
+            return self.folder / TEXT_TABLE_FILE
+        if Path(ref["path"]).is_file():
+            return Path(ref["path"])
+        warnings.warn(
+            f"{ref['path']}: the field's phrase table is missing, so the saved field cannot answer text "
+            f"queries without a text encoder given",
+            stacklevel=3,
+        )
+        return None
 
     @classmethod
     def load(cls, out: str | Path) -> LanguageField:
@@ -243,6 +304,10 @@ class LanguageField(nn.Module):
             )
         if meta.get("tensors_sha256") and meta["tensors_sha256"] != _sha256(tensors_path):
             raise ValueError(f"{tensors_path}: checksum differs from {meta_path}; the save was interrupted")
+        table_path = out / TEXT_TABLE_FILE
+        if meta.get("text_table_sha256") and table_path.is_file():
+            if meta["text_table_sha256"] != _sha256(table_path):
+                raise ValueError(f"{table_path}: checksum differs from {meta_path}; the save was interrupted")
         tensors = load_file(str(tensors_path))
         splats = nn.ParameterDict(
             {k.split(".", 1)[1]: nn.Parameter(v) for k, v in tensors.items() if k.startswith("splats.")}
@@ -256,7 +321,9 @@ class LanguageField(nn.Module):
                 language = build_language_heads(meta)
                 language.load_state_dict(_prefixed(tensors, "language"))
             decoder = load_decoder(_prefixed(tensors, "decoder"), autoencoder_config(spec))
-        return cls(splats, color, meta, language, decoder)
+        field = cls(splats, color, meta, language, decoder)
+        field.folder = out
+        return field
 
     def field_bytes(self) -> int:
         """Bytes of all tensors of the field."""

@@ -97,7 +97,8 @@ def test_eval_writes_the_format_report(trained, scene_dir, tmp_path, capsys) -> 
     field = LanguageField.load(out)
     assert report["num_gaussians"] == field.num_gaussians
     assert report["field_bytes"] == field.field_bytes() > 0
-    assert report["mIoU"] is None and report["mAcc"] is None
+    assert 0 <= report["mIoU"] <= 1 and 0 <= report["mAcc"] <= 1  # the room is labelled
+    assert all(set(q) == {"iou", "hit"} for v in report["views"] for q in v["queries"].values())
     assert set(report["feature_cosine"]) == {"subpart", "part", "whole"}  # the scene has feature caches
     md = report_path.with_suffix(".md")
     assert md.is_file() and "PSNR" in md.read_text()
@@ -169,6 +170,9 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
 def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--iterations", "20", "--width", "48", "--height", "36"]) == 0
+    assert (out / "queries" / "contact_sheet.png").is_file()
+    printed = capsys.readouterr().out
+    assert "PSNR" in printed and "mIoU" in printed
     report = json.loads((out / "report.json").read_text())
     assert set(report) == REPORT_KEYS and report["iterations"] == 20
     assert (out / "report.md").is_file()
@@ -180,7 +184,6 @@ def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
         rgb = cv2.imread(str(out / "renders" / f"{name}_rgb.png"))
         assert rgb is not None and rgb.shape == (36, 48, 3)
         assert (out / "renders" / f"{name}_depth.png").is_file()
-    assert "PSNR" in capsys.readouterr().out
 
 
 # ---------------------------------------------------------------- bad input

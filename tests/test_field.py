@@ -18,7 +18,7 @@ from langfield.ply import SH_C0, read_gaussian_ply
 from langfield.synthetic import make_room
 
 N = 500
-FIELD_FILES = ("field.safetensors", "field.json", "gaussians.ply")
+FIELD_FILES = ("field.safetensors", "field.json", "gaussians.ply", "text_embeddings.npz")  # room: a table
 
 
 @pytest.fixture(scope="module")
