@@ -21,6 +21,7 @@ import torch
 
 from langfield import gaussians as G
 from langfield.camera import Camera
+from langfield.evaluate import evaluate
 from langfield.raster import BACKENDS, rasterize
 from langfield.scene import Scene
 from langfield.trainer import TrainConfig, evaluate_psnr, train
@@ -72,19 +73,25 @@ def backend_step_ms(
 def training_curve(
     scene: Scene, iterations: int, every: int, seed: int = 0, backend: str = "auto"
 ) -> list[dict]:
-    """Trains once and records novel-view PSNR and Gaussian count every ``every`` iterations."""
+    """Trains once and records novel-view PSNR, mIoU (labelled scenes) and Gaussian count.
+
+    A point every ``every`` iterations and at the end; evaluation time is not training time. The
+    last point also carries the query latency (see :func:`query_latency`).
+    """
     points: list[dict[str, Any]] = []
+    labelled = any(scene.segmentations(n) for n in scene.names("test"))
 
     def record(step: int, seconds: float, field) -> None:
-        points.append(
-            {
-                "seconds": seconds,
-                "iterations": step,
-                "PSNR": evaluate_psnr(field, scene),
-                "mIoU": None,
-                "num_gaussians": field.num_gaussians,
-            }
-        )
+        point: dict[str, Any] = {"seconds": seconds, "iterations": step, "mIoU": None, "mAcc": None}
+        if labelled and field.has_language:
+            report = evaluate(field, scene)
+            point.update(PSNR=report["PSNR"], mIoU=report["mIoU"], mAcc=report["mAcc"])
+        else:
+            point["PSNR"] = evaluate_psnr(field, scene)
+        point["num_gaussians"] = field.num_gaussians
+        if step == iterations and labelled and field.has_language:
+            point["query_ms_per_view"] = query_latency(field, scene)
+        points.append(point)
 
     train(
         scene,
@@ -94,6 +101,28 @@ def training_curve(
         callback_every=every,
     )
     return points
+
+
+def query_latency(field, scene: Scene, repeats: int = 3) -> dict[str, float]:
+    """Median milliseconds of one phrase's relevance + mask on a test view, once the field is loaded.
+
+    The decoder lattice is built by the first view of the first query (reported as ``first_view_ms``);
+    after that every view costs a render of the latent channels and a lattice look-up.
+    """
+    phrases = sorted({p for n in scene.names("test") for p in scene.segmentations(n)})
+    cams = scene.cameras("test")
+    t0 = time.perf_counter()
+    q = field.query(phrases[0], scene=scene)
+    q.mask(cams[0])
+    first = time.perf_counter() - t0
+    times = []
+    with torch.no_grad():
+        for _ in range(repeats):
+            for cam in cams:
+                t0 = time.perf_counter()
+                q.mask(cam)
+                times.append(time.perf_counter() - t0)
+    return {"ms": 1000 * statistics.median(times), "first_view_ms": 1000 * first, "width": cams[0].width}
 
 
 def language_overhead(scene: Scene, iterations: int = 100, seed: int = 0) -> dict[str, float]:
@@ -129,23 +158,36 @@ def lad_lop_overhead(scene: Scene, iterations: int = 1000, seed: int = 0) -> dic
     return result
 
 
-def plot_curve(points: list[dict], path: Path) -> None:
-    """PSNR against training seconds and against Gaussian count, one PNG."""
+def plot_curve(curves: dict[str, list[dict]] | list[dict], path: Path) -> None:
+    """Novel-view PSNR and mIoU against training seconds and against Gaussian count, one PNG.
+
+    ``curves``: {label: points} (one line per resolution), or one list of points.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
-    secs = [p["seconds"] for p in points]
-    psnrs = [p["PSNR"] for p in points]
-    axes[0].plot(secs, psnrs, "o-")
-    axes[0].set_xlabel("training wall time (s)")
-    axes[0].set_ylabel("novel-view PSNR (dB)")
-    axes[1].plot([p["num_gaussians"] for p in points], psnrs, "o-")
-    axes[1].set_xlabel("Gaussians")
-    for ax in axes:
+    if isinstance(curves, list):
+        curves = {"": curves}
+    fig, axes = plt.subplots(2, 2, figsize=(9, 6.5))
+    for label, points in curves.items():
+        secs = [p["seconds"] for p in points]
+        gauss = [p["num_gaussians"] for p in points]
+        for row, key in enumerate(("PSNR", "mIoU")):
+            values = [p.get(key) for p in points]
+            if any(v is None for v in values):
+                continue
+            axes[row, 0].plot(secs, values, "o-", label=label or None)
+            axes[row, 1].plot(gauss, values, "o-", label=label or None)
+    axes[0, 0].set_ylabel("novel-view PSNR (dB)")
+    axes[1, 0].set_ylabel("novel-view mIoU")
+    axes[1, 0].set_xlabel("training wall time (s)")
+    axes[1, 1].set_xlabel("Gaussians")
+    for ax in axes.flat:
         ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0] and len(curves) > 1:
+            ax.legend(fontsize=8)
     fig.suptitle("langfield: quality against training time")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -179,12 +221,24 @@ def format_table(result: dict) -> str:
             f"{oh['lad_lop_ms_per_iteration']:.0f} ms with both (+{100 * (oh['ratio'] - 1):.0f} %, "
             f"LOP removed {oh['lop_removed']} Gaussians)"
         )
-    if result.get("curve"):
-        lines.append("training curve (novel views):")
-        lines.append("  iterations   seconds    PSNR   Gaussians")
-        for p in result["curve"]:
-            psnr_txt = f"{p['PSNR']:7.2f}" if p["PSNR"] is not None else "    n/a"
-            lines.append(f"  {p['iterations']:10d} {p['seconds']:9.1f} {psnr_txt} {p['num_gaussians']:11d}")
+    for label, points in (result.get("curves") or {"": result.get("curve") or []}).items():
+        if not points:
+            continue
+        lines.append(f"training curve (novel views){' at ' + label if label else ''}:")
+        lines.append("  iterations   seconds    PSNR    mIoU   Gaussians")
+        for p in points:
+            psnr_txt = f"{p['PSNR']:7.2f}" if p.get("PSNR") is not None else "    n/a"
+            miou_txt = f"{p['mIoU']:7.3f}" if p.get("mIoU") is not None else "    n/a"
+            lines.append(
+                f"  {p['iterations']:10d} {p['seconds']:9.1f} {psnr_txt} {miou_txt} {p['num_gaussians']:11d}"
+            )
+        latency = points[-1].get("query_ms_per_view")
+        if latency:
+            lines.append(
+                f"  query (relevance + mask, one phrase) at {latency['width']} px wide: "
+                f"{latency['ms']:.0f} ms per view "
+                f"(first view, lattice included: {latency['first_view_ms']:.0f} ms)"
+            )
     return "\n".join(lines)
 
 
@@ -199,6 +253,7 @@ def run_bench(
     plot_path: Path | None = None,
     seed: int = 0,
     overhead_iterations: int = 1000,
+    extra_scenes: dict[str, Scene] | None = None,
 ) -> dict:
     """Runs both benchmarks on ``scene``; writes JSON and the plot where asked."""
     camera = scene.cameras("train")[0]
@@ -220,9 +275,13 @@ def run_bench(
         else None
     )
     result["curve"] = training_curve(scene, iterations, every, seed) if iterations > 0 else []
+    cam = scene.cameras("train")[0]
+    result["curves"] = {f"{cam.width}x{cam.height}": result["curve"]}
+    for label, other in (extra_scenes or {}).items():  # other resolutions of the same scene
+        result["curves"][label] = training_curve(other, iterations, every, seed) if iterations > 0 else []
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=2))
     if plot_path is not None and result["curve"]:
-        plot_curve(result["curve"], plot_path)
+        plot_curve(result["curves"], plot_path)
     return result

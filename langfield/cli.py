@@ -171,6 +171,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     scene_path = args.scene or make_room(out / "scene", width=160, height=120)
     scene = load_scene(scene_path, resolution=args.resolution)
+    extra = {}
+    for factor in args.also_resolution or []:
+        other = load_scene(scene_path, resolution=args.resolution * factor)
+        cam = other.cameras("train")[0]
+        extra[f"{cam.width}x{cam.height}"] = other
     json_path = Path(args.json) if args.json else out / "bench.json"
     plot = json_path.with_suffix(".png")
     result = run_bench(
@@ -181,6 +186,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         json_path=json_path,
         plot_path=plot,
         overhead_iterations=args.overhead_iterations,
+        extra_scenes=extra,
     )
     print(format_table(result))
     b = result["backends"]
@@ -315,6 +321,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=1000,
         help="run length for the L_D + LOP cost against a plain run (0: skip; default 1000)",
+    )
+    p.add_argument(
+        "--also-resolution",
+        type=float,
+        action="append",
+        default=None,
+        help="a further downscale factor to trace the curve at (repeatable), e.g. 2 for half size",
     )
     p.set_defaults(func=cmd_bench)
 

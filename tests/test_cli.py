@@ -146,7 +146,7 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     json_path = out / "b.json"
     args = ["bench", "--scene", str(scene_dir), "--iterations", "20", "--every", "10"]
     args += ["--num-gaussians", "300", "--out", str(out), "--json", str(json_path)]
-    args += ["--overhead-iterations", "12"]
+    args += ["--overhead-iterations", "12", "--also-resolution", "2"]
     assert main(args) == 0
     result = json.loads(json_path.read_text())
     overhead = result["lad_lop_overhead"]
@@ -164,6 +164,9 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
         assert point["seconds"] > 0 and math.isfinite(point["PSNR"]) and point["num_gaussians"] > 0
     assert result["curve"][0]["seconds"] <= result["curve"][1]["seconds"]
     assert json_path.with_suffix(".png").is_file()
+    assert list(result["curves"]) == [f"{W}x{H}", f"{W // 2}x{H // 2}"]
+    assert all(0 <= p["mIoU"] <= 1 for c in result["curves"].values() for p in c)  # the room is labelled
+    assert result["curve"][-1]["query_ms_per_view"]["ms"] > 0
     assert "faster than torch" in capsys.readouterr().out
 
 
