@@ -128,3 +128,17 @@ def test_eval_reports_feature_cosine_per_level(field, scene):
     report = evaluate(field, scene)
     assert set(report["feature_cosine"]) == {"subpart", "part", "whole"}
     assert all(-1.0 <= v <= 1.0 for v in report["feature_cosine"].values())
+
+
+def test_coarser_language_grid_is_recorded_and_reloads(scene, tmp_path):
+    cfg = TrainConfig(iterations=2, language_grid_scale=0.25, autoencoder_iterations=5)
+    f = train(scene, cfg, progress=False)
+    color, lang = f.color.grid.cfg, f.language.grid.cfg
+    assert lang.finest_resolution < color.finest_resolution and lang.n_levels < color.n_levels
+    assert not f._shared_cells  # its own cell layout: the colour grid's look-up is not reused
+    f.save(tmp_path / "f")
+    loaded = LanguageField.load(tmp_path / "f")
+    assert loaded.language.grid.cfg == lang
+    cam = scene.camera(scene.names("test")[0])
+    with torch.no_grad():
+        assert torch.allclose(loaded.render(cam).latents, f.render(cam).latents, atol=1e-6)
