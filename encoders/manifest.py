@@ -18,6 +18,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 KINDS = ("clip", "sam", "depth")
@@ -84,3 +86,25 @@ def read_manifest(folder: str | Path, kind: str) -> dict[str, Any]:
         resolved[role] = f
     data["files"] = resolved
     return data
+
+
+def manifest_triple(manifest: dict, key: str, where: Path) -> np.ndarray:
+    """``manifest[key]`` as a float32 [3] array (per-channel mean or std), or a ManifestError."""
+    value = manifest.get(key)
+    try:
+        arr = np.asarray(value, dtype=np.float32)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if arr.shape != (3,) or not np.isfinite(arr).all():
+        raise ManifestError(f"{where}: {key!r} must be three numbers (R, G, B), got {value!r}")
+    return arr
+
+
+def onnx_session(path: str | Path) -> Any:
+    """An onnxruntime CPU session of one file, or a ValueError naming it."""
+    import onnxruntime as ort
+
+    try:
+        return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types for unreadable models
+        raise ValueError(f"{path}: cannot load ONNX model ({exc})") from exc

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from encoders.manifest import ManifestError, read_manifest
+from encoders.manifest import ManifestError, manifest_triple, onnx_session, read_manifest
 from encoders.protocols import check_phrases
 
 __all__ = ["ClipTokenizer", "OnnxClipEncoder", "bytes_to_unicode", "clean_text"]
@@ -207,8 +207,8 @@ class OnnxClipEncoder:
         self.image_size = _positive_int(manifest, "input_size", where)
         self.dim = _positive_int(manifest, "dim", where)
         self.context_length = _positive_int(manifest, "context_length", where)
-        self._mean = _triple(manifest, "mean", where)
-        self._std = _triple(manifest, "std", where)
+        self._mean = manifest_triple(manifest, "mean", where)
+        self._std = manifest_triple(manifest, "std", where)
         if (self._std <= 0).any():
             raise ManifestError(f"{where}: 'std' must be positive, got {self._std.tolist()}")
         if manifest.get("output") != "unit":
@@ -222,8 +222,8 @@ class OnnxClipEncoder:
                 f"gives {self.tokenizer.vocab_size} tokens"
             )
         self._image_path, self._text_path = manifest["files"]["image"], manifest["files"]["text"]
-        self._image = _session(self._image_path)
-        self._text = _session(self._text_path)
+        self._image = onnx_session(self._image_path)
+        self._text = onnx_session(self._text_path)
         _check_io(self._image, self._image_path, [3, self.image_size, self.image_size], self.dim)
         _check_io(self._text, self._text_path, [self.context_length], self.dim)
 
@@ -274,16 +274,6 @@ class OnnxClipEncoder:
         return (out / norms).astype(np.float32)  # already unit; this only removes float32 rounding
 
 
-def _session(path: Path) -> Any:
-    """An onnxruntime CPU session of one file, or a ValueError naming it."""
-    import onnxruntime as ort
-
-    try:
-        return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    except Exception as exc:  # onnxruntime raises its own exception types for unreadable models
-        raise ValueError(f"{path}: cannot load ONNX model ({exc})") from exc
-
-
 def _check_io(session: Any, path: Path, feature_shape: list[int], dim: int) -> None:
     """One input [batch, *feature_shape] and a first output [batch, dim], as the manifest says."""
     inputs, outputs = session.get_inputs(), session.get_outputs()
@@ -303,14 +293,3 @@ def _positive_int(manifest: dict, key: str, where: Path) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ManifestError(f"{where}: {key!r} must be a positive integer, got {value!r}")
     return value
-
-
-def _triple(manifest: dict, key: str, where: Path) -> np.ndarray:
-    value = manifest.get(key)
-    try:
-        arr = np.asarray(value, dtype=np.float32)
-    except (TypeError, ValueError):
-        arr = np.zeros(0)
-    if arr.shape != (3,) or not np.isfinite(arr).all():
-        raise ManifestError(f"{where}: {key!r} must be three numbers (R, G, B), got {value!r}")
-    return arr

@@ -24,12 +24,11 @@ Example:
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 
-from encoders.manifest import ManifestError, read_manifest
+from encoders.manifest import ManifestError, manifest_triple, onnx_session, read_manifest
 from encoders.protocols import DEPTH_KINDS, DepthKind, check_image
 
 __all__ = ["OnnxDepthEstimator"]
@@ -75,12 +74,12 @@ class OnnxDepthEstimator:
         ):
             raise ManifestError(f"{where}: 'input_size' must be [H, W], two positive integers, got {size!r}")
         self.input_size = (size[0], size[1])
-        self._mean = _triple(manifest, "mean", where)
-        self._std = _triple(manifest, "std", where)
+        self._mean = manifest_triple(manifest, "mean", where)
+        self._std = manifest_triple(manifest, "std", where)
         if (self._std <= 0).any():
             raise ManifestError(f"{where}: 'std' must be positive, got {self._std.tolist()}")
         self._path = manifest["files"]["model"]
-        self._session = _session(self._path)
+        self._session = onnx_session(self._path)
         inputs = self._session.get_inputs()
         shape = list(inputs[0].shape) if len(inputs) == 1 else []
         if len(inputs) != 1 or len(shape) != 4 or shape[1:] != [3, *self.input_size]:
@@ -115,24 +114,3 @@ class OnnxDepthEstimator:
         if pred.shape != (h, w):
             pred = cv2.resize(pred, (w, h), interpolation=cv2.INTER_LINEAR)
         return np.ascontiguousarray(pred, dtype=np.float32)
-
-
-def _session(path: Path) -> Any:
-    """An onnxruntime CPU session of one file, or a ValueError naming it."""
-    import onnxruntime as ort
-
-    try:
-        return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    except Exception as exc:  # onnxruntime raises its own exception types for unreadable models
-        raise ValueError(f"{path}: cannot load ONNX model ({exc})") from exc
-
-
-def _triple(manifest: dict, key: str, where: Path) -> np.ndarray:
-    value = manifest.get(key)
-    try:
-        arr = np.asarray(value, dtype=np.float32)
-    except (TypeError, ValueError):
-        arr = np.zeros(0)
-    if arr.shape != (3,) or not np.isfinite(arr).all():
-        raise ManifestError(f"{where}: {key!r} must be three numbers (R, G, B), got {value!r}")
-    return arr

@@ -53,7 +53,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from encoders.manifest import read_manifest
+from encoders.manifest import onnx_session, read_manifest
 from encoders.protocols import LEVELS, check_image
 
 __all__ = [
@@ -125,8 +125,6 @@ class OnnxSamSegmenter:
         dedup_score_thresh: float = 0.7,
         dedup_inner_thresh: float = 0.5,
     ) -> None:
-        import onnxruntime as ort
-
         if points_per_side < 1 or points_per_batch < 1 or min_mask_area < 0:
             raise ValueError(
                 f"OnnxSamSegmenter: need points_per_side >= 1, points_per_batch >= 1, min_mask_area >= 0, "
@@ -147,10 +145,9 @@ class OnnxSamSegmenter:
         self.dedup_iou_thresh = float(dedup_iou_thresh)
         self.dedup_score_thresh = float(dedup_score_thresh)
         self.dedup_inner_thresh = float(dedup_inner_thresh)
-        providers = ["CPUExecutionProvider"]
         files = manifest["files"]
-        self._encoder = ort.InferenceSession(str(files["image_encoder"]), providers=providers)
-        self._decoder = ort.InferenceSession(str(files["decoder"]), providers=providers)
+        self._encoder = onnx_session(files["image_encoder"])
+        self._decoder = onnx_session(files["decoder"])
 
     def embed(self, image: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
         """SAM's image embedding of one image (``SamPredictor.set_image``).
