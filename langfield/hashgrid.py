@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from langfield.hashgrid_cpu import InterpolateRowsNumba
+
 # Instant-NGP's spatial-hash primes (paper eq. 4); the first is 1 for cache coherence.
 _PRIMES = (1, 2654435761, 805459861)
 
@@ -175,6 +177,9 @@ class HashGrid(nn.Module):
             raise ValueError(
                 f"grid box needs a finite centre and a positive half extent, got {center}, {half}"
             )
+        # The numba kernels of :mod:`langfield.hashgrid_cpu` on the CPU; False selects the PyTorch
+        # reference (``_InterpolateRows``), which the tests compare them against.
+        self.fast = True
         self.register_buffer("center", center)
         self.register_buffer("half_extent", half)
 
@@ -254,22 +259,36 @@ class HashGrid(nn.Module):
         frac = pos - lo.to(x.dtype)
         return self._corner_rows(lo), frac
 
-    def interpolate(self, rows: Tensor, frac: Tensor) -> Tensor:
+    def interpolate(self, rows: Tensor, frac: Tensor, groups: int = 1) -> Tensor:
         """Trilinearly interpolate the table at the corners found by :meth:`corners`.
 
         Args:
             rows: [8, L, N] int64 table rows.
             frac: [3, L, N] position inside the cell.
+            groups: split each row's F features into this many groups of F / groups consecutive
+                features and return one encoding per group (the language grid's three levels).
 
         Returns:
-            [N, L * F] features.
+            [N, L * F] features for ``groups == 1``, else [groups, N, L * F / groups], each group
+            level-major like the plain encoding.
         """
         f = self.cfg.features_per_level
+        if groups < 1 or f % groups:
+            raise ValueError(f"groups must divide features_per_level={f}, got {groups}")
+        n = rows.shape[-1]
+        if self.fast and self.table.device.type == "cpu":
+            out = InterpolateRowsNumba.apply(
+                self.table.view(-1, f), rows, frac.to(self.table.dtype), self.cfg.table_size, groups
+            )  # [G, N, L * F / G]
+            return out[0] if groups == 1 else out
         # Feature-major [F, L * T] layout: a gather of single values is several times faster on the CPU
         # than a gather of F-wide rows, and so is the scatter-add of the backward pass.
         table_t = self.table.reshape(-1, f).t().contiguous()
         out = _InterpolateRows.apply(table_t, rows, frac.to(table_t.dtype))  # [F, L, N]
-        return out.permute(2, 1, 0).reshape(rows.shape[-1], self.cfg.out_dim)
+        if groups == 1:
+            return out.permute(2, 1, 0).reshape(n, self.cfg.out_dim)
+        per = f // groups
+        return out.reshape(groups, per, -1, n).permute(0, 3, 2, 1).reshape(groups, n, -1)
 
     def _corner_rows(self, lo: Tensor) -> Tensor:
         """Rows of the flat ``[L * T]`` table holding the 8 corners of each point's cell, per level.

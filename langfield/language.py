@@ -54,11 +54,10 @@ class LanguageHeads(nn.Module):
         ``corners`` may come from another grid with the same cell layout (the colour grid), which spares
         the hashing; the caller detaches what should pass no gradient.
         """
-        n = means.shape[0]
-        # [N, L * 6], per grid level: subpart (2), part (2), whole (2)
-        h = self.grid.interpolate(*corners) if corners is not None else self.grid(means)
-        h = h.reshape(n, self.n_grid_levels, N_LEVELS, FEATURES_PER_LEVEL).permute(0, 2, 1, 3)
-        return self.mlp(h.reshape(n, N_LEVELS, self.n_grid_levels * FEATURES_PER_LEVEL))
+        # Each table row holds, per grid level, subpart (2), part (2), whole (2); read back as three
+        # encodings [3, N, L * 2], one per language level, which MLP_L maps in one batch.
+        h = self.grid.interpolate(*(corners or self.grid.corners(means)), groups=N_LEVELS)
+        return self.mlp(h).permute(1, 0, 2)
 
     def grid_parameters(self) -> Iterator[nn.Parameter]:
         yield from self.grid.parameters()
