@@ -84,6 +84,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         language=False if args.no_language else None,
         language_features=args.language_features,
+        language_grid_scale=args.language_grid_scale,
         iterations=args.iterations,
         seed=args.seed,
         backend=args.backend,
@@ -186,6 +187,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         json_path=json_path,
         plot_path=plot,
         overhead_iterations=args.overhead_iterations,
+        language_iterations=args.language_iterations,
+        language_repeats=args.language_repeats,
         extra_scenes=extra,
     )
     print(format_table(result))
@@ -270,6 +273,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="language latents from hash grids (SOVGaussian) or one per Gaussian (LangSplat baseline)",
     )
     p.add_argument(
+        "--language-grid-scale",
+        type=float,
+        default=0.25,
+        help="language grid's finest resolution as a fraction of the colour grid's (default 0.25; 1: same)",
+    )
+    p.add_argument(
         "--no-language",
         action="store_true",
         help="train colour only, even if the scene has language_features/ (default: language when it has)",
@@ -321,6 +330,18 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=1000,
         help="run length for the L_D + LOP cost against a plain run (0: skip; default 1000)",
+    )
+    p.add_argument(
+        "--language-iterations",
+        type=int,
+        default=100,
+        help="run length for the language field's cost against an RGB-only run (0: skip; default 100)",
+    )
+    p.add_argument(
+        "--language-repeats",
+        type=int,
+        default=3,
+        help="interleaved pairs of those runs; the medians are compared (default 3)",
     )
     p.add_argument(
         "--also-resolution",
