@@ -146,21 +146,29 @@ def cmd_eval(args: argparse.Namespace) -> int:
     field, scene = _load_field_and_scene(args.out, args.scene)
     json_path = Path(args.json)
     pictures = json_path.parent / (json_path.stem + "_renders")
-    report = evaluate(field, scene, save_dir=pictures)
+    report = evaluate(field, scene, split=args.split, save_dir=pictures)
     md = write_report(report, json_path, pictures)
     psnr_txt = (
         f"PSNR {report['PSNR']:.2f} dB, SSIM {report['SSIM']:.3f}"
         if report["PSNR"] is not None
-        else "no test views"
+        else f"no {args.split} views"
     )
     query_txt = (
         f", mIoU {report['mIoU']:.3f}, mAcc {report['mAcc']:.3f}" if report.get("mIoU") is not None else ""
     )
     print(
-        f"{len(report['views'])} test views: {psnr_txt}{query_txt}; {report['num_gaussians']} Gaussians, "
+        f"{len(report['views'])} {args.split} views: {psnr_txt}{query_txt}{_cosine_text(report)}; "
+        f"{report['num_gaussians']} Gaussians, "
         f"{report['field_bytes'] / 1e6:.1f} MB; report {json_path} and {md}"
     )
     return 0
+
+
+def _cosine_text(report: dict) -> str:
+    cos = report.get("feature_cosine")
+    if not cos or any(v is None for v in cos.values()):
+        return ""
+    return ", feature cosine " + " / ".join(f"{v:.3f}" for v in cos.values()) + " (" + "/".join(cos) + ")"
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -313,6 +321,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", help="folder of a trained field")
     p.add_argument("scene", nargs="?", default=None, help="scene folder (default: the one in field.json)")
     p.add_argument("--json", required=True, help="report path; a Markdown summary is written beside it")
+    p.add_argument(
+        "--split", choices=["test", "train"], default="test", help="views to score (default: the test views)"
+    )
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bench", help="time the backends and trace quality against training time")

@@ -105,6 +105,15 @@ def test_eval_writes_the_format_report(trained, scene_dir, tmp_path, capsys) -> 
     assert "PSNR" in capsys.readouterr().out
 
 
+def test_eval_scores_the_training_views_on_request(trained, scene_dir, tmp_path, capsys) -> None:
+    out, _, _ = trained
+    report_path = tmp_path / "T.json"
+    assert main(["eval", str(out), "--json", str(report_path), "--split", "train"]) == 0
+    report = json.loads(report_path.read_text())
+    assert [v["name"] for v in report["views"]] == load_scene(scene_dir).names("train")
+    assert "train views" in capsys.readouterr().out
+
+
 def test_eval_finds_the_scene_recorded_in_field_json(trained, tmp_path) -> None:
     out, _, _ = trained
     assert main(["eval", str(out), "--json", str(tmp_path / "r.json")]) == 0
