@@ -2,7 +2,8 @@
 
 - :func:`aligned_depth_error`: novel-view depth error after a per-view least-squares scale-and-shift fit
   to the true depth (monocular priors and sparse-view renders agree with the truth only up to those);
-- :func:`count_floaters`: Gaussians whose centre lies farther than a tolerance from every true surface.
+- :func:`count_floaters`: Gaussians whose centre lies farther than a tolerance from every true surface;
+- :func:`observed_fraction`: how much of a test view shows surfaces some training view sees.
 
 Both are used by ``langfield ablate`` to show what LAD and LOP change (issue: depth distillation and
 outlier pruning). Scenes without ``gt/`` give ``None``.
@@ -103,3 +104,52 @@ def count_floaters(field: LanguageField, scene: Scene, tolerance: float = FLOATE
     dist = distance_to_surfaces(scene.root, means)
     count = int((dist > tol).sum())
     return {"floaters": count, "fraction": count / max(len(means), 1), "tolerance": tol}
+
+
+def observed_fraction(scene: Scene, split: str = "test", tolerance: float = 0.02) -> dict | None:
+    """How much of each ``split`` view shows a surface that some training view sees.
+
+    Every pixel with a true depth is lifted to its surface point, projected into each training view,
+    and counts as observed where it lands inside that image in front of the camera and within
+    ``tolerance`` (relative) of the training view's own true depth there (not occluded). Separates
+    "the test view shows what no training view saw" from "the reconstruction of what was seen is wrong".
+
+    Returns:
+        ``{"mean": fraction, "views": {name: fraction}}``, or None without ``gt/depth/``.
+    """
+    folder = Path(scene.root) / "gt" / "depth"
+    train = scene.names("train")
+    if not folder.is_dir() or not all((folder / f"{n}.npy").is_file() for n in train):
+        return None
+    views = {}
+    for name in scene.names(split):
+        path = folder / f"{name}.npy"
+        if not path.is_file():
+            continue
+        cam = scene.camera(name)
+        z = np.load(path).astype(np.float64)
+        if z.shape != (cam.height, cam.width):
+            raise ValueError(f"{path}: shape {z.shape}, the view is {cam.height}x{cam.width}")
+        v, u = np.mgrid[0 : cam.height, 0 : cam.width] + 0.5
+        valid = (np.isfinite(z) & (z > 0)).reshape(-1)
+        cam_pts = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z, np.ones_like(z)], -1)
+        world = cam_pts.reshape(-1, 4) @ np.linalg.inv(cam.world_to_camera(torch.float64).numpy()).T
+        seen = np.zeros(len(world), dtype=bool)
+        for other in train:
+            oc = scene.camera(other)
+            oz = np.load(folder / f"{other}.npy").astype(np.float64)
+            q = world @ oc.world_to_camera(torch.float64).numpy().T
+            depth = q[:, 2]
+            front = depth > 1e-6
+            safe = np.where(front, depth, 1.0)
+            col = np.floor(oc.fx * q[:, 0] / safe + oc.cx)
+            row = np.floor(oc.fy * q[:, 1] / safe + oc.cy)
+            inside = front & (col >= 0) & (col < oc.width) & (row >= 0) & (row < oc.height)
+            ci = np.clip(col, 0, oc.width - 1).astype(np.int64)
+            ri = np.clip(row, 0, oc.height - 1).astype(np.int64)
+            seen |= inside & (np.abs(oz[ri, ci] - depth) <= tolerance * depth)
+        if valid.any():
+            views[name] = float(seen[valid].mean())
+    if not views:
+        return None
+    return {"mean": float(np.mean(list(views.values()))), "views": views}

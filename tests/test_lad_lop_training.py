@@ -166,3 +166,17 @@ def test_ablate_command_writes_one_table(room, tmp_path):
     assert table["rows"]["full"]["depth_abs_rel"] is not None
     assert "| no-depth |" in (out / "ablation.md").read_text()
     assert main(["ablate", str(room), "--out", str(out), "--cases", "nope"]) == 2
+
+
+def test_observed_fraction_is_one_on_the_training_views_and_high_on_the_room(room):
+    from langfield.geometry_eval import observed_fraction
+
+    scene = load_scene(room)
+    train = observed_fraction(scene, split="train")
+    assert train is not None and train["mean"] == pytest.approx(1.0, abs=1e-3)  # each pixel sees itself
+    test = observed_fraction(scene)
+    assert set(test["views"]) == set(scene.names("test")) and 0.5 < test["mean"] <= 1.0
+    # Fewer witnesses never see more: with one training view no test view's fraction grows, some drop.
+    one = observed_fraction(load_scene(room, views=[scene.names("train")[0]]))
+    drops = [one["views"][n] - test["views"][n] for n in scene.names("test")]
+    assert max(drops) <= 1e-9 and min(drops) < -0.01
