@@ -57,6 +57,16 @@ def aligned_depth_error(
     return {"abs_rel": float(np.mean(err / g)), "mae": float(np.mean(err)), "pixels": int(valid.sum())}
 
 
+def _true_depth(path: Path, camera: Camera) -> np.ndarray:
+    """[H, W] float64 ground-truth z-depth of a view, resized (nearest) to the camera's resolution."""
+    z = np.load(path).astype(np.float64)
+    if z.shape != (camera.height, camera.width):
+        import cv2
+
+        z = cv2.resize(z, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+    return z
+
+
 def depth_errors(field: LanguageField, scene: Scene, split: str = "test") -> dict | None:
     """Per-view and mean aligned depth error on ``split``; None without ``gt/depth/``."""
     folder = Path(scene.root) / "gt" / "depth"
@@ -69,11 +79,7 @@ def depth_errors(field: LanguageField, scene: Scene, split: str = "test") -> dic
             if not path.is_file():
                 continue
             cam = scene.camera(name)
-            gt_z = np.load(path).astype(np.float32)
-            if gt_z.shape != (cam.height, cam.width):
-                import cv2
-
-                gt_z = cv2.resize(gt_z, (cam.width, cam.height), interpolation=cv2.INTER_NEAREST)
+            gt_z = _true_depth(path, cam).astype(np.float32)
             out = field.render(cam)
             err = aligned_depth_error(out.depth.numpy(), out.alpha.numpy(), gt_z * ray_lengths(cam))
             if err is not None:
@@ -121,24 +127,27 @@ def observed_fraction(scene: Scene, split: str = "test", tolerance: float = 0.02
     train = scene.names("train")
     if not folder.is_dir() or not all((folder / f"{n}.npy").is_file() for n in train):
         return None
+    # The witnesses: each training view's camera, world-to-camera matrix and true depth, read once.
+    witnesses = []
+    for other in train:
+        oc = scene.camera(other)
+        witnesses.append(
+            (oc, oc.world_to_camera(torch.float64).numpy(), _true_depth(folder / f"{other}.npy", oc))
+        )
     views = {}
     for name in scene.names(split):
         path = folder / f"{name}.npy"
         if not path.is_file():
             continue
         cam = scene.camera(name)
-        z = np.load(path).astype(np.float64)
-        if z.shape != (cam.height, cam.width):
-            raise ValueError(f"{path}: shape {z.shape}, the view is {cam.height}x{cam.width}")
+        z = _true_depth(path, cam)
         v, u = np.mgrid[0 : cam.height, 0 : cam.width] + 0.5
         valid = (np.isfinite(z) & (z > 0)).reshape(-1)
         cam_pts = np.stack([(u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z, np.ones_like(z)], -1)
         world = cam_pts.reshape(-1, 4) @ np.linalg.inv(cam.world_to_camera(torch.float64).numpy()).T
         seen = np.zeros(len(world), dtype=bool)
-        for other in train:
-            oc = scene.camera(other)
-            oz = np.load(folder / f"{other}.npy").astype(np.float64)
-            q = world @ oc.world_to_camera(torch.float64).numpy().T
+        for oc, w2c, oz in witnesses:
+            q = world @ w2c.T
             depth = q[:, 2]
             front = depth > 1e-6
             safe = np.where(front, depth, 1.0)

@@ -275,7 +275,6 @@ class HashGrid(nn.Module):
         f = self.cfg.features_per_level
         if groups < 1 or f % groups:
             raise ValueError(f"groups must divide features_per_level={f}, got {groups}")
-        n = rows.shape[-1]
         if self.fast and self.table.device.type == "cpu":
             out = InterpolateRowsNumba.apply(
                 self.table.view(-1, f), rows, frac.to(self.table.dtype), self.cfg.table_size, groups
@@ -285,6 +284,7 @@ class HashGrid(nn.Module):
         # than a gather of F-wide rows, and so is the scatter-add of the backward pass.
         table_t = self.table.reshape(-1, f).t().contiguous()
         out = _InterpolateRows.apply(table_t, rows, frac.to(table_t.dtype))  # [F, L, N]
+        n = rows.shape[-1]
         if groups == 1:
             return out.permute(2, 1, 0).reshape(n, self.cfg.out_dim)
         per = f // groups
