@@ -7,6 +7,7 @@ Cases (each a :class:`~langfield.trainer.TrainConfig` change from the full metho
 - ``no-lad``: the plain global depth loss only (no per-mask normalisation);
 - ``no-depth``: without L_D;
 - ``per-gaussian``: one learnable latent per Gaussian instead of the hash grid (LangSplat's way);
+- ``no-opacity-reg`` (not in the default set): without the L1 opacity penalty (``lambda_opacity=0``);
 - ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP; the comparison of
   issue 5's mIoU target.
 
@@ -32,6 +33,7 @@ CASES: dict[str, dict[str, Any]] = {
     "no-lad": {"lad": False},
     "no-depth": {"depth": False},
     "per-gaussian": {"language_features": "per-gaussian"},
+    "no-opacity-reg": {"lambda_opacity": 0.0},
     "baseline": {"language_features": "per-gaussian", "depth": False, "lop": False},
 }
 DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian")

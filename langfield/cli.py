@@ -11,6 +11,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from langfield import __version__
@@ -95,6 +96,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         lad=not args.no_lad,
         lop=not args.no_lop,
     )
+    if args.lambda_opacity is not None:
+        cfg = replace(cfg, lambda_opacity=args.lambda_opacity)
     field = train(scene, cfg)
     field.meta["scene_args"] = _scene_args(args)
     field.save(args.out)
@@ -111,6 +114,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, **_scene_args(args))
     cases = tuple(c.strip() for c in args.cases.split(",")) if args.cases else DEFAULT_CASES
     base = TrainConfig(iterations=args.iterations, seed=args.seed, backend=args.backend)
+    if args.lambda_opacity is not None:
+        base = replace(base, lambda_opacity=args.lambda_opacity)
     rows = run_ablation(scene, base, cases, out_dir=args.out)
     print(format_table(rows))
     print(
@@ -287,6 +292,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="language grid's finest resolution as a fraction of the colour grid's (default 0.25; 1: same)",
     )
     p.add_argument(
+        "--lambda-opacity",
+        type=float,
+        default=None,
+        help="weight of the L1 opacity penalty that fades unneeded Gaussians (default: TrainConfig's)",
+    )
+    p.add_argument(
         "--no-language",
         action="store_true",
         help="train colour only, even if the scene has language_features/ (default: language when it has)",
@@ -301,6 +312,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int, default=1500, help="training iterations per case (default 1500)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto")
+    p.add_argument(
+        "--lambda-opacity",
+        type=float,
+        default=None,
+        help="opacity penalty weight of every case (default: TrainConfig's; the no-opacity-reg case sets 0)",
+    )
     p.add_argument(
         "--cases",
         default=None,

@@ -89,6 +89,11 @@ class TrainConfig:
     # the built-in scene). Chosen by `langfield ablate`-style sweeps; see the README.
     lambda_depth: float = 0.001
     lambda_sa: float = LAMBDA_SA
+    # L1 on the opacities, lambda * mean(sigmoid(o)) (3DGS-MCMC, Kheradmand et al. 2024, weight 0.01): a
+    # Gaussian the images do not need fades below prune_opacity and densification removes it. Three
+    # views leave most of the random start in free space, and those floaters carry wrong colours and
+    # latents into new views; see the README's "Measured here" for the sweep behind the default.
+    lambda_opacity: float = 0.03
     lop: bool = True  # language-guided outlier pruning; needs the language field
     lop_every: int = LOP_INTERVAL
     lop_gamma: int = LOP_GAMMA
@@ -350,6 +355,8 @@ def train(
         raise ValueError(f"{scene.root}: no training views; choose them with views= or n_views=")
     if cfg.iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {cfg.iterations}")
+    if not (math.isfinite(cfg.lambda_opacity) and cfg.lambda_opacity >= 0):
+        raise ValueError(f"lambda_opacity must be finite and >= 0, got {cfg.lambda_opacity}")
     targets = language_targets(scene, cfg, progress=progress)
     depths = depth_targets(scene, cfg, targets)
     field = build_field(scene, cfg, targets)
@@ -395,6 +402,8 @@ def train(
             loss = loss + cfg.lambda_depth * depth_loss(
                 depths[name], out.depth_hard, out.depth, cfg.lambda_sa, lad=cfg.lad
             )
+        if cfg.lambda_opacity > 0:
+            loss = loss + cfg.lambda_opacity * G.opacities(field.splats).mean()
         loss.backward()
         if cfg.densify:
             info = {

@@ -150,6 +150,21 @@ def test_negative_iterations_raise(scene) -> None:
         _train(scene, iterations=-1, num_gaussians=300)
 
 
+def test_opacity_penalty_fades_gaussians(scene) -> None:
+    cfg = dict(iterations=30, num_gaussians=400, densify=False, seed=4)
+    plain, penalised = _train(scene, **cfg), _train(scene, lambda_opacity=1.0, **cfg)
+    mean_plain = G.opacities(plain.splats).mean().item()
+    mean_penalised = G.opacities(penalised.splats).mean().item()
+    assert mean_penalised < 0.8 * mean_plain
+    assert all(torch.isfinite(p).all() for p in penalised.splats.values())
+
+
+@pytest.mark.parametrize("weight", [-0.1, float("nan"), float("inf")])
+def test_invalid_opacity_penalty_raises(scene, weight) -> None:
+    with pytest.raises(ValueError, match="lambda_opacity"):
+        _train(scene, iterations=1, num_gaussians=50, lambda_opacity=weight)
+
+
 # ---------------------------------------------------------------- meta
 
 
