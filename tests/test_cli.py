@@ -147,6 +147,16 @@ def test_train_bounds_flag_accepts_a_negative_first_value_as_documented(scene_di
     assert LanguageField.load(out).meta["bounds"] == [[-1, -1, 0], [1, 1, 1.5]]
 
 
+def test_train_lambda_opacity_flag_reaches_the_config(scene_dir, tmp_path, capsys) -> None:
+    out = tmp_path / "out"
+    args = ["train", str(scene_dir), "--out", str(out), "--iterations", "1", "--num-gaussians", "300"]
+    assert main([*args, "--lambda-opacity", "0"]) == 0
+    assert LanguageField.load(out).meta["config"]["lambda_opacity"] == 0.0
+    assert main([*args, "--lambda-opacity", "-1"]) == 2
+    assert "lambda_opacity" in capsys.readouterr().err
+    assert LanguageField.load(out).meta["config"]["lambda_opacity"] == 0.0  # the earlier field is kept
+
+
 # ---------------------------------------------------------------- bench / demo
 
 
