@@ -1,8 +1,9 @@
 """Training a field from a scene's training views: ``langfield.train(scene, TrainConfig(...))``.
 
-The loss is L = L_C + L_LF + L_D: L_C = 0.8 L1 + 0.2 D-SSIM with kornia's SSIM, L_LF the language
-loss on the rendered latents (geometry detached), L_D the depth distillation of
-:mod:`langfield.depth_loss` (LAD, eq. 6-11) on the hard and soft rendered depth. Gaussians are
+The loss is L = L_C + L_LF + L_D + L_O: L_C = 0.8 L1 + 0.2 D-SSIM with kornia's SSIM, L_LF the
+language loss on the rendered latents (geometry detached), L_D the depth distillation of
+:mod:`langfield.depth_loss` (LAD, eq. 6-11) on the hard and soft rendered depth, and L_O an L1 penalty
+on the opacities (3DGS-MCMC) that lets densification prune the Gaussians the images do not need. Gaussians are
 initialised at random inside the scene bounds (COLMAP often fails on three views), sized to the scene,
 densified by :class:`langfield.strategy.DensifyStrategy`, and pruned by language-guided outlier
 pruning (:mod:`langfield.lop`, eq. 14-16) every ``lop_every`` iterations.

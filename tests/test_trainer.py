@@ -152,7 +152,7 @@ def test_negative_iterations_raise(scene) -> None:
 
 def test_opacity_penalty_fades_gaussians(scene) -> None:
     cfg = dict(iterations=30, num_gaussians=400, densify=False, seed=4)
-    plain, penalised = _train(scene, **cfg), _train(scene, lambda_opacity=1.0, **cfg)
+    plain, penalised = _train(scene, lambda_opacity=0.0, **cfg), _train(scene, lambda_opacity=1.0, **cfg)
     mean_plain = G.opacities(plain.splats).mean().item()
     mean_penalised = G.opacities(penalised.splats).mean().item()
     assert mean_penalised < 0.8 * mean_plain
