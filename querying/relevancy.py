@@ -11,17 +11,23 @@ where the canonical phrases are "object", "things", "stuff" and "texture" (LERF
 Masks follow LangSplat's evaluation (``eval/evaluate_iou_loc.py``, ``activate_stream``, and
 ``eval/utils.py``, ``smooth``), step by step, one function per step:
 
-1. :func:`smooth_map`: per level, 0.5 * (30x30 box-filtered map) + 0.5 * map;
+1. :func:`smooth_map`: per level, 0.5 * (30x30 box-filtered map) + 0.5 * map, the box being
+   ``cv2.filter2D`` with its default anchor and border (:func:`box_filter`: window -15 .. +14, mirrored
+   borders);
 2. :func:`choose_level`: the level whose smoothed map has the highest maximum;
 3. :func:`normalize_map`: that level's *smoothed* map, min-max stretched to [-1, 1] and clipped to [0, 1];
 4. threshold at 0.4 (``--mask_thresh 0.4`` in LangSplat's ``eval/eval.sh``), i.e. 0.7 of the min-max range;
-5. :func:`majority_filter`: 7x7 majority vote (LangSplat's ``smooth``: window of +-3 pixels).
+5. :func:`majority_filter`: 7x7 majority vote (LangSplat's ``smooth``: window of +-3 pixels cut off at
+   the border, ties to 0, the last row and column not voting).
 
-LangSplat chose its pixel sizes for images about 1000 pixels wide; here each size is scaled with the
-image width by :func:`scaled_size` (a 30-pixel box on a 160-pixel image would erase a mug).
+LangSplat uses these pixel sizes at whatever resolution it evaluates, which for LERF-OVS is the images'
+own, 985 to 988 pixels wide. From :data:`REFERENCE_WIDTH` (985) on, the sizes here are LangSplat's and
+the pipeline gives LangSplat's masks; on narrower images :func:`scaled_size` shrinks them with the
+width (a 30-pixel box on a 160-pixel image would erase a mug).
 
 Localization (LangSplat ``lerf_localization``): box-filter each level, take the level with the highest
-maximum, and score a hit if that maximum's pixel lies inside the object (:func:`localization_hit`).
+maximum, and score a hit if that maximum's pixel lies inside the object (:func:`localization_hit`;
+LangSplat tests it against the object's bounding boxes and accepts any tied maximum).
 
 Small objects: at the map's minimum background, a band of width w pixels survives the threshold only
 if w > 0.4 x the box size (0.5 + 0.5 w / box > 0.7); with the sizes of :func:`scaled_size` that is about
@@ -45,7 +51,6 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import kornia
 import torch
 from torch import Tensor
 
@@ -80,8 +85,10 @@ CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 TEMPERATURE = 10.0
 # Norm floor when normalising features, so zero vectors give similarity 0 (relevancy 0.5), not NaN.
 EMBEDDING_EPS = 1e-8
-# Image width (pixels) for which LangSplat's filter sizes were chosen (LERF scenes are ~1000 px wide).
-REFERENCE_WIDTH = 1000
+# Image width (pixels) from which on LangSplat's filter sizes are used unscaled: the narrowest LERF-OVS
+# image LangSplat evaluates on, at full resolution (waldo_kitchen 985x725, figurines 986x728, ramen and
+# teatime 988x731; LangSplat's eval reads the size from each label's JSON).
+REFERENCE_WIDTH = 985
 # LangSplat activate_stream: `scale = 30`, a 30x30 mean filter, mixed half and half with the map.
 SMOOTHING_BOX_AT_REFERENCE = 30
 SMOOTHING_WEIGHT = 0.5
@@ -190,66 +197,101 @@ def relevancy(
 
 
 def scaled_size(size_at_reference: int, width: int, reference_width: int = REFERENCE_WIDTH) -> int:
-    """A filter size chosen for ``reference_width``-pixel images, scaled to an image ``width`` wide.
+    """LangSplat's filter size for an image ``width`` pixels wide.
 
-    Returns the largest odd size not above ``size_at_reference * width / reference_width`` (at least
-    1): odd so the window is centred (LangSplat's even 30-pixel box sits half a pixel off), and rounded
-    down so the filter never reaches further, relative to the image, than LangSplat's.
+    At and above ``reference_width`` this is ``size_at_reference`` itself, so there the pipeline is
+    LangSplat's, which uses the same 30 and 7 at every resolution. Below it the size shrinks with the
+    width: the largest odd size not above ``size_at_reference * width / reference_width`` (at least 1).
+    Odd, so the window is centred; rounded down, so relative to the image it is never wider than
+    LangSplat's and never reaches further than LangSplat's longer side (15 pixels before a pixel for
+    the 30 box, whose window is -15 .. +14; 3 either side for the vote).
 
     Args:
-        size_at_reference: size in pixels at the reference width (30 for LangSplat's box).
+        size_at_reference: LangSplat's size in pixels (30 for the box, 7 for the vote).
         width: the image's width in pixels.
-        reference_width: width the size was chosen for (:data:`REFERENCE_WIDTH`).
+        reference_width: the width from which on LangSplat's size is used (:data:`REFERENCE_WIDTH`).
 
     Returns:
-        An odd size >= 1, e.g. 30 -> 29 at 1000 px, 3 at 160 px; 7 -> 7 at 1000 px, 1 at 160 px.
+        A size >= 1, e.g. 30 -> 30 at 985 px and above, 29 at 980 px, 3 at 160 px; 7 -> 7 at 985 px,
+        5 at 980 px, 1 at 160 px.
     """
     if size_at_reference < 1 or width < 1 or reference_width < 1:
         raise ValueError(f"scaled_size: sizes must be positive, got {size_at_reference}, {width}")
+    if width >= reference_width:
+        return size_at_reference
     scaled = size_at_reference * width / reference_width
     return max(1, 2 * int((scaled - 1) // 2) + 1)
 
 
 def _as_batch(maps: Tensor) -> tuple[Tensor, torch.Size]:
-    """``[..., H, W]`` -> ``[B, 1, H, W]`` float for kornia, and the leading shape to restore."""
+    """``[..., H, W]`` -> ``[B, 1, H, W]`` float, and the leading shape to restore."""
     lead = maps.shape[:-2]
     return maps.reshape(-1, 1, *maps.shape[-2:]).float(), lead
 
 
-def box_filter(maps: Tensor, size: int) -> Tensor:
-    """Mean over a ``size`` x ``size`` window, borders mirrored (LangSplat: ``cv2.filter2D`` of a
-    normalised box, whose default border is BORDER_REFLECT_101 = kornia's ``"reflect"``).
+def _reflect_101(n: int, before: int, after: int, device: torch.device) -> Tensor:
+    """Indices of a length-``n`` axis padded by ``before`` and ``after`` with OpenCV's BORDER_REFLECT_101
+    (``dcb|abcd|cba``), reflecting again as often as a pad longer than the axis needs."""
+    index = torch.arange(-before, n + after, device=device)
+    if n == 1:
+        return torch.zeros_like(index)
+    period = 2 * (n - 1)
+    index = torch.remainder(index, period)
+    return torch.where(index >= n, period - index, index)
 
-    The window is clipped to the image (at most ``2 min(H, W) - 1``) so mirroring stays defined.
+
+def box_filter(maps: Tensor, size: int) -> Tensor:
+    """``cv2.filter2D(map, -1, np.ones((size, size)) / size**2)``, OpenCV's defaults included (LangSplat
+    ``eval/evaluate_iou_loc.py``, ``activate_stream`` and ``lerf_localization``, with size 30).
+
+    The window of pixel i spans i - size // 2 .. i + (size - 1 - size // 2) in each axis, as
+    ``filter2D``'s default anchor puts it: centred for an odd size, -15 .. +14 for LangSplat's 30.
+    Pixels outside the image are mirrored without repeating the edge (BORDER_REFLECT_101, filter2D's
+    default border), reflected again where the window is longer than the image.
 
     Args:
         maps: ``[..., H, W]`` float maps.
-        size: odd window size in pixels (see :func:`scaled_size`); 1 returns the maps unchanged.
+        size: window size in pixels, odd or even (see :func:`scaled_size`); 1 returns the maps unchanged.
 
     Returns:
         ``[..., H, W]`` float32 filtered maps.
     """
     _check_map("box_filter", maps, 2)
-    if size < 1 or size % 2 == 0:
-        raise ValueError(f"box_filter: size must be odd and positive, got {size}")
-    h, w = maps.shape[-2:]
-    size = min(size, 2 * min(h, w) - 1)
+    if size < 1:
+        raise ValueError(f"box_filter: size must be positive, got {size}")
     if size == 1:
         return maps.float().clone()
+    h, w = maps.shape[-2:]
     batch, lead = _as_batch(maps)
-    return kornia.filters.box_blur(batch, (size, size), border_type="reflect").reshape(*lead, h, w)
+    before, after = size // 2, size - 1 - size // 2
+    padded = batch.index_select(-2, _reflect_101(h, before, after, batch.device))
+    padded = padded.index_select(-1, _reflect_101(w, before, after, batch.device))
+    # Separable mean: two passes of `size` additions per pixel instead of size**2.
+    rows = torch.nn.functional.avg_pool2d(padded, (size, 1), stride=1)
+    return torch.nn.functional.avg_pool2d(rows, (1, size), stride=1).reshape(*lead, h, w)
 
 
-def majority_filter(mask: Tensor, size: int) -> Tensor:
-    """Majority vote of a binary mask over a ``size`` x ``size`` window (LangSplat ``eval/utils.py``
-    ``smooth``: the most frequent value of the window, the window clipped at the image border, a tie
-    going to 0 as ``np.argmax(np.bincount(...))`` does).
+def _window_sums(batch: Tensor, size: int) -> Tensor:
+    """Sums over centred ``size`` x ``size`` windows, zeros outside the image (exact for 0/1 images)."""
+    r = size // 2
+    rows = torch.nn.functional.avg_pool2d(batch, (size, 1), stride=1, padding=(r, 0), divisor_override=1)
+    return torch.nn.functional.avg_pool2d(rows, (1, size), stride=1, padding=(0, r), divisor_override=1)
 
-    A pixel is set if strictly more than half of the window's in-image pixels are set.
+
+def majority_filter(mask: Tensor, size: int, last_line_votes: bool = False) -> Tensor:
+    """Majority vote of a binary mask over a ``size`` x ``size`` window: LangSplat ``eval/utils.py``
+    ``smooth`` (size 7: ``scale = 3``).
+
+    A pixel is set if strictly more than half of the pixels that vote in its window are set; a tie
+    goes to 0, as ``np.argmax(np.bincount(...))`` gives. The window is cut off at the image border. As
+    in ``smooth``, whose slice of pixel i stops at ``min(i + scale + 1, h - 1)``, the last row and the
+    last column never vote (they are still voted on); ``last_line_votes=True`` lets them vote too.
+    A window without voters (an image one pixel high or wide) gives 0, where ``smooth`` would fail.
 
     Args:
         mask: ``[..., H, W]`` bool (or 0/1) masks.
         size: odd window size (see :func:`scaled_size`); 1 returns the mask unchanged.
+        last_line_votes: whether the last row and column vote (False: LangSplat's ``smooth``).
 
     Returns:
         ``[..., H, W]`` bool masks.
@@ -260,14 +302,13 @@ def majority_filter(mask: Tensor, size: int) -> Tensor:
     if size == 1:
         return mask.bool().clone()
     batch, lead = _as_batch(mask.bool())
-    area = size * size
-    # Zero padding counts only in-image pixels; the in-image count comes from a window over ones.
-    ones_in_window = kornia.filters.box_blur(batch, (size, size), border_type="constant") * area
-    pixels_in_window = kornia.filters.box_blur(
-        torch.ones_like(batch[:1]), (size, size), border_type="constant"
-    )
-    voted = 2 * ones_in_window.round() > (pixels_in_window * area).round()
-    return voted.reshape(*lead, *mask.shape[-2:])
+    voters = torch.ones_like(batch[:1])
+    if not last_line_votes:
+        voters[..., -1, :] = 0.0
+        voters[..., :, -1] = 0.0
+    ones = _window_sums(batch * voters, size)
+    pixels = _window_sums(voters, size)
+    return (2.0 * ones > pixels).reshape(*lead, *mask.shape[-2:])
 
 
 # ---------------------------------------------------------------- LangSplat's mask pipeline
@@ -279,7 +320,8 @@ def smooth_map(maps: Tensor, box_size: int | None = None, weight: float = SMOOTH
 
     Args:
         maps: ``[..., H, W]`` relevancy maps.
-        box_size: odd box size; default :data:`SMOOTHING_BOX_AT_REFERENCE` scaled to the width.
+        box_size: box size (odd or even); default :data:`SMOOTHING_BOX_AT_REFERENCE` via
+            :func:`scaled_size`.
         weight: weight of the box-filtered map (:data:`SMOOTHING_WEIGHT`).
 
     Returns:
@@ -334,8 +376,9 @@ def relevancy_mask(maps: Tensor, threshold: float = MASK_THRESHOLD) -> Relevancy
     """LangSplat's evaluation mask from per-level relevancy maps: smooth, choose the level, normalise
     the chosen smoothed map, threshold (strictly above ``threshold``), majority-filter.
 
-    Filter sizes scale with the width (:func:`scaled_size`): at 160 px a 3x3 box and no majority
-    vote, so a map equal to an object's mask 2 or more pixels wide returns exactly that mask.
+    Filter sizes come from :func:`scaled_size`: LangSplat's 30x30 box and 7x7 vote from
+    :data:`REFERENCE_WIDTH` on; at 160 px a 3x3 box and no majority vote, so a map equal to an object's
+    mask 2 or more pixels wide returns exactly that mask.
 
     Args:
         maps: ``[..., L, H, W]`` relevancy maps in [0, 1], e.g. :func:`relevancy`'s ``[Q, L, H, W]``.
@@ -365,7 +408,8 @@ def localization_point(maps: Tensor, box_size: int | None = None) -> tuple[Tenso
 
     Args:
         maps: ``[..., H, W]`` or ``[..., L, H, W]`` relevancy maps; a 2-d map is one level.
-        box_size: odd box size; default :data:`LOCALIZATION_BOX_AT_REFERENCE` scaled to the width.
+        box_size: box size (odd or even); default :data:`LOCALIZATION_BOX_AT_REFERENCE` via
+            :func:`scaled_size`.
 
     Returns:
         ``(level [...] long, yx [..., 2] long)``: the chosen level and (row, column) of the point.
@@ -385,7 +429,7 @@ def localization_point(maps: Tensor, box_size: int | None = None) -> tuple[Tenso
 def localization_hit(maps: Tensor, gt_mask: Tensor) -> bool:
     """Whether the localization point (:func:`localization_point`) lies inside the object.
 
-    LangSplat tests the point against the object's bounding boxes; here against its mask (DESIGN.md).
+    LangSplat tests the point against the object's bounding boxes; here against its mask (docs/design.md).
 
     Args:
         maps: ``[H, W]`` or ``[L, H, W]`` relevancy maps of one phrase.

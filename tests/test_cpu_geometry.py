@@ -1,7 +1,9 @@
-"""The numba projection and binning against their PyTorch references: values and every gradient."""
+"""The numba projection and binning against their PyTorch references (values and every gradient), and the
+clamp of the EWA Jacobian of both backends against gsplat's limits."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from conftest import random_gaussians
@@ -81,3 +83,120 @@ def test_binning_of_nothing(cam):
         torch.zeros(0, 2), torch.zeros(0, dtype=torch.int32), torch.zeros(0, 3), empty, empty, 40, 30
     )
     assert offsets.shape == (3 * 2 + 1,) and (offsets == 0).all() and ids.numel() == 0
+
+
+# ---------------------------------------------------------------- off-screen clamp of the Jacobian
+
+# Camera space = world space: the OpenGL pose diag(1, -1, -1) flips y and z back to OpenCV's.
+_IDENTITY_POSE = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def _clamp_camera(cx: float, cy: float) -> Camera:
+    return Camera("", 64, 48, 50.0, 40.0, cx, cy, _IDENTITY_POSE)
+
+
+def _rotmat(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _expected_conics(means, quats, scales, cam: Camera, lims) -> np.ndarray:
+    """The EWA conic of each Gaussian in float64, J taken at the tangent clipped to ``lims``."""
+    x_neg, x_pos, y_neg, y_pos = lims
+    out = []
+    for mean, q, s in zip(means, quats, scales, strict=True):
+        x, y, z = mean
+        tx = z * np.clip(x / z, -x_neg, x_pos)
+        ty = z * np.clip(y / z, -y_neg, y_pos)
+        jac = np.array(
+            [[cam.fx / z, 0.0, -cam.fx * tx / z**2], [0.0, cam.fy / z, -cam.fy * ty / z**2]]
+        )
+        m = _rotmat(q) * s[None, :]
+        cov = jac @ (m @ m.T) @ jac.T + 0.3 * np.eye(2)
+        inv = np.linalg.inv(cov)
+        out.append([inv[0, 0], inv[0, 1], inv[1, 1]])
+    return np.array(out)
+
+
+def _gaussians_at_the_limits(lims, z: float = 2.0, seed: int = 0):
+    """Centres 2 % inside and 2 % outside each of the four limits, plus one far outside each."""
+    x_neg, x_pos, y_neg, y_pos = lims
+    tangents = []
+    for factor in (0.98, 1.02, 3.0):
+        tangents += [(x_pos * factor, 0.1), (-x_neg * factor, -0.1)]
+        tangents += [(0.1, y_pos * factor), (-0.1, -y_neg * factor)]
+    means = np.array([[u * z, v * z, z] for u, v in tangents])
+    rng = np.random.default_rng(seed)
+    quats = rng.normal(size=(len(means), 4))
+    scales = np.tile([0.05, 0.1, 0.4], (len(means), 1))  # long in z: J's third column matters
+    return means, quats, scales
+
+
+@pytest.mark.parametrize(
+    ("cx", "cy", "lims"),
+    [
+        # Centred principal point: 3DGS's 1.3 tan(fov / 2) on every side, tan = 0.5 * 64 / 50, 0.5 * 48 / 40.
+        (32.0, 24.0, (1.3 * 0.64, 1.3 * 0.64, 1.3 * 0.6, 1.3 * 0.6)),
+        # Off-centre: gsplat's (edge - c) / f + 0.3 tan(fov / 2) per side, worked out by hand.
+        (20.0, 30.0, (20 / 50 + 0.192, 44 / 50 + 0.192, 30 / 40 + 0.18, 18 / 40 + 0.18)),
+    ],
+    ids=["centred", "off-centre"],
+)
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_jacobian_is_clamped_at_gsplats_limits(backend, cx, cy, lims):
+    cam = _clamp_camera(cx, cy)
+    means, quats, scales = _gaussians_at_the_limits(lims)
+    fn = project_gaussians if backend == "torch" else project_gaussians_cpu
+    proj = fn(
+        torch.tensor(means, dtype=torch.float32),
+        torch.tensor(quats, dtype=torch.float32),
+        torch.tensor(scales, dtype=torch.float32),
+        cam.world_to_camera(),
+        cam.intrinsics(),
+        cam.width,
+        cam.height,
+    )
+    # The inputs as the backends see them (float32), so only the clamp can make a difference.
+    m32, q32, s32 = (np.float32(a).astype(np.float64) for a in (means, quats, scales))
+    expected = _expected_conics(m32, q32, s32, cam, lims)
+    np.testing.assert_allclose(proj.conics.numpy(), expected, rtol=2e-5, atol=0)
+    # The clamp matters here: without it the centres just outside would give other conics.
+    unclamped = _expected_conics(m32, q32, s32, cam, (np.inf,) * 4)
+    outside = np.arange(len(means)) % 12 >= 4
+    assert (np.abs(unclamped - expected).max(axis=1)[outside] > 1e-3 * np.abs(expected).max()).all()
+    assert np.allclose(unclamped[~outside], expected[~outside])
+    # The projected mean is never clamped.
+    mean2d = np.stack([cam.fx * m32[:, 0] / m32[:, 2] + cx, cam.fy * m32[:, 1] / m32[:, 2] + cy], -1)
+    np.testing.assert_allclose(proj.means2d.numpy(), mean2d, rtol=1e-6, atol=1e-4)
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_clamped_tangent_passes_no_gradient_to_its_coordinate(backend):
+    lims = (20 / 50 + 0.192, 44 / 50 + 0.192, 30 / 40 + 0.18, 18 / 40 + 0.18)
+    cam = _clamp_camera(20.0, 30.0)
+    means, quats, scales = (torch.tensor(a, dtype=torch.float32) for a in _gaussians_at_the_limits(lims))
+    means.requires_grad_(True)
+    fn = project_gaussians if backend == "torch" else project_gaussians_cpu
+    proj = fn(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), cam.width, cam.height)
+    weights = torch.randn(proj.conics.shape, generator=torch.Generator().manual_seed(0))
+    (proj.conics * weights).sum().backward()
+    # Order per factor: +x, -x limit (x tested), +y, -y limit (y tested); factors 0.98, 1.02, 3.
+    kind = np.arange(len(means)) % 4
+    outside = np.arange(len(means)) % 12 >= 4
+    tested = np.where(kind < 2, 0, 1)
+    g = means.grad.numpy()[np.arange(len(means)), tested]
+    assert (g[outside] == 0).all()
+    assert (np.abs(g[~outside]) > 1e-6).all()
+    assert (means.grad[:, 2] != 0).all()  # z still moves the clamped Jacobian
+
+
+def test_projection_matches_reference_at_the_clamp_limits():
+    lims = (20 / 50 + 0.192, 44 / 50 + 0.192, 30 / 40 + 0.18, 18 / 40 + 0.18)
+    params = [torch.tensor(a, dtype=torch.float32) for a in _gaussians_at_the_limits(lims, seed=1)]
+    assert_projections_agree(params, _clamp_camera(20.0, 30.0))

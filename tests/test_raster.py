@@ -161,6 +161,24 @@ def test_gaussian_covering_whole_image(cam):
     assert_backends_agree(params, cam)
 
 
+def test_large_gaussians_centred_off_screen_at_the_clamp_limits(cam):
+    # Centres 2 % inside and outside 3DGS's 1.3 tan(fov / 2) on all four sides, wide enough to reach the
+    # image: the clamped Jacobian shapes what is rendered, and both backends must clamp alike.
+    depth = 2.0  # camera-space z of the centres (the camera sits at y = -3 looking along +y)
+    lim_x = 1.3 * 0.5 * cam.width / cam.fx
+    lim_y = 1.3 * 0.5 * cam.height / cam.fy
+    centres = []
+    for factor in (0.98, 1.02):
+        for sign in (1.0, -1.0):
+            centres.append((sign * lim_x * factor * depth, depth - 3.0, 0.1))
+            centres.append((0.1, depth - 3.0, sign * lim_y * factor * depth))
+    parts = [one_gaussian(c, scale=0.6, opacity=0.7, quat=(0.9, 0.3, -0.2, 0.1)) for c in centres]
+    params = with_backdrop([torch.cat(p) for p in zip(*parts, strict=True)])
+    out, _ = render_and_grads("cpu", params, cam)
+    assert (out.radii[: len(centres)] > 0).all()
+    assert_backends_agree(params, cam)
+
+
 def test_empty_scene_all_culled(cam):
     params = random_gaussians(20, 3)
     params[0] = params[0] - torch.tensor([0.0, 10.0, 0.0])  # all behind the camera

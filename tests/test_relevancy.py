@@ -11,6 +11,7 @@ import torch
 
 from querying.relevancy import (
     MASK_THRESHOLD,
+    REFERENCE_WIDTH,
     box_filter,
     choose_level,
     localization_hit,
@@ -132,18 +133,38 @@ def test_relevancy_rejects_mismatched_dimensions() -> None:
 @pytest.mark.parametrize(
     ("size", "width", "expected"),
     [
-        (30, 1000, 29),
+        # From the narrowest LERF-OVS width (985) on: LangSplat's own sizes, whatever the width.
+        (30, 985, 30),
+        (30, 988, 30),
+        (7, 986, 7),
+        (7, 988, 7),
+        (30, 1000, 30),
+        (30, 2000, 30),
+        (7, 2000, 7),
+        # Below it: the largest odd size not above size x width / 985.
+        (30, 984, 29),
+        (7, 984, 5),
         (30, 160, 3),
         (30, 320, 9),
-        (7, 1000, 7),
         (7, 160, 1),
         (7, 640, 3),
         (30, 10, 1),
-        (30, 2000, 59),
     ],
 )
 def test_scaled_size(size, width, expected) -> None:
     assert scaled_size(size, width) == expected
+
+
+def test_scaled_size_is_never_wider_than_langsplats_below_the_reference() -> None:
+    # Relative to the image, no wider than LangSplat's 30 and 7 at 985 px, and reaching no further
+    # than LangSplat's windows: 15 pixels before a pixel (box), 3 either side (vote).
+    for width in range(1, REFERENCE_WIDTH):
+        box, vote = scaled_size(30, width), scaled_size(7, width)
+        assert box % 2 == 1 and vote % 2 == 1
+        assert box / width <= 30 / REFERENCE_WIDTH or box == 1
+        assert vote / width <= 7 / REFERENCE_WIDTH or vote == 1
+        assert (box - 1) / 2 / width <= 15 / REFERENCE_WIDTH
+        assert (vote - 1) / 2 / width <= 3 / REFERENCE_WIDTH
 
 
 def test_box_filter_of_a_delta_is_a_uniform_square() -> None:
@@ -163,17 +184,46 @@ def test_box_filter_matches_langsplats_cv2_filter2d() -> None:
     torch.testing.assert_close(box_filter(torch.from_numpy(image), 5), torch.from_numpy(expected))
 
 
-def test_box_filter_keeps_leading_dimensions_and_clips_the_window() -> None:
+def test_box_filter_keeps_leading_dimensions() -> None:
     maps = torch.rand(2, 3, 4, 5)
     assert box_filter(maps, 3).shape == (2, 3, 4, 5)
+    assert box_filter(maps, 30).shape == (2, 3, 4, 5)
     torch.testing.assert_close(box_filter(maps, 1), maps)
-    # A 31-pixel box on a 4x5 map is clipped to 7 so mirroring stays defined.
-    torch.testing.assert_close(box_filter(maps, 31), box_filter(maps, 7))
 
 
-def test_box_filter_rejects_even_sizes() -> None:
-    with pytest.raises(ValueError, match="odd"):
-        box_filter(torch.rand(5, 5), 4)
+@pytest.mark.parametrize(("shape", "size"), [((20, 30), 4), ((4, 5), 31), ((4, 5), 30), ((1, 7), 6)])
+def test_box_filter_matches_cv2_for_even_sizes_and_windows_longer_than_the_image(shape, size) -> None:
+    # OpenCV mirrors again where the window is longer than the image; so does box_filter.
+    image = np.random.default_rng(1).random(shape).astype(np.float32)
+    expected = cv2.filter2D(image, -1, np.ones((size, size)) / size**2)
+    np.testing.assert_allclose(box_filter(torch.from_numpy(image), size).numpy(), expected, atol=1e-6)
+
+
+def test_box_filter_rejects_sizes_below_one() -> None:
+    with pytest.raises(ValueError, match="positive"):
+        box_filter(torch.rand(5, 5), 0)
+
+
+def test_box_filter_at_the_reference_width_is_langsplats_cv2_filter2d() -> None:
+    # LangSplat activate_stream: kernel = np.ones((30, 30)) / 900; cv2.filter2D(np_relev, -1, kernel).
+    image = np.random.default_rng(2).random((731, 988)).astype(np.float32)
+    expected = cv2.filter2D(image, -1, np.ones((30, 30)) / 900.0)
+    size = scaled_size(30, 988)
+    assert size == 30
+    np.testing.assert_allclose(box_filter(torch.from_numpy(image), size).numpy(), expected, atol=1e-6)
+    smoothed = smooth_map(torch.from_numpy(image)).numpy()
+    np.testing.assert_allclose(smoothed, 0.5 * (expected + image), atol=1e-6)
+
+
+def test_box_filter_window_of_30_spans_minus_15_to_plus_14() -> None:
+    # cv2.filter2D's default anchor of an even kernel is (15, 15): pixel p averages p - 15 .. p + 14,
+    # so an impulse at r reaches the outputs r - 14 .. r + 15.
+    impulse = torch.zeros(80, 90)
+    impulse[40, 45] = 1.0
+    out = box_filter(impulse, 30)
+    expected = torch.zeros(80, 90)
+    expected[40 - 14 : 40 + 16, 45 - 14 : 45 + 16] = 1.0 / 900.0
+    torch.testing.assert_close(out, expected, atol=1e-9, rtol=0)
 
 
 def test_majority_filter_on_a_hand_made_mask() -> None:
@@ -185,13 +235,26 @@ def test_majority_filter_on_a_hand_made_mask() -> None:
     expected = torch.zeros(5, 5, dtype=torch.bool)
     expected[2, 1:4] = True
     expected[1:4, 2] = True
-    assert torch.equal(majority_filter(ring, 3), expected)
+    assert torch.equal(majority_filter(ring, 3, last_line_votes=True), expected)
+    # As in LangSplat's smooth, by default the last row and column do not vote: (4, 2) sees only row 3,
+    # all set; (1, 4) sees column 3 only, 2 of 3 set; (1, 3) loses column 4, 3 of 6 -> a tie, cleared.
+    langsplat = torch.tensor(
+        [
+            [0, 0, 0, 0, 0],
+            [0, 0, 1, 0, 1],
+            [0, 1, 1, 1, 1],
+            [0, 0, 1, 1, 1],
+            [0, 1, 1, 1, 1],
+        ],
+        dtype=torch.bool,
+    )
+    assert torch.equal(majority_filter(ring, 3), langsplat)
 
 
 def test_majority_filter_matches_a_loop_over_clipped_windows() -> None:
     g = torch.Generator().manual_seed(3)
     mask = torch.rand(2, 11, 13, generator=g) > 0.5
-    got = majority_filter(mask, 5)
+    got = majority_filter(mask, 5, last_line_votes=True)
     for b in range(2):
         for i in range(11):
             for j in range(13):
@@ -204,6 +267,49 @@ def test_majority_filter_keeps_full_and_empty_masks() -> None:
     assert not majority_filter(torch.zeros(6, 6, dtype=torch.bool), 5).any()
     mask = torch.rand(6, 6) > 0.5
     assert torch.equal(majority_filter(mask, 1), mask)
+
+
+def _langsplat_smooth(mask: np.ndarray) -> np.ndarray:
+    """LangSplat eval/utils.py smooth, written out: the most frequent value of the window i-3 .. i+3
+    (its slice stops at min(i + 4, h - 1)), ties to 0 by np.argmax(np.bincount(...))."""
+    h, w = mask.shape
+    out = mask.copy()
+    for i in range(h):
+        for j in range(w):
+            window = mask[max(0, i - 3) : min(i + 4, h - 1), max(0, j - 3) : min(j + 4, w - 1)]
+            out[i, j] = np.argmax(np.bincount(window.reshape(-1)))
+    return out
+
+
+@pytest.mark.parametrize("shape", [(37, 53), (8, 9)])
+def test_majority_filter_7_is_langsplats_smooth(shape) -> None:
+    mask = (np.random.default_rng(5).random(shape) > 0.5).astype(np.uint8)
+    got = majority_filter(torch.from_numpy(mask), 7)
+    assert scaled_size(7, 988) == 7
+    np.testing.assert_array_equal(got.numpy().astype(np.uint8), _langsplat_smooth(mask))
+
+
+def test_mask_and_localization_at_988_px_are_langsplats() -> None:
+    # LangSplat's activate_stream and lerf_localization written out with cv2, on a strip of a
+    # 988-pixel-wide view (the width sets the sizes; a short strip keeps the smooth loop fast).
+    rng = np.random.default_rng(6)
+    noise = rng.random((3, 60, 988)).astype(np.float32)
+    maps = np.stack([cv2.GaussianBlur(m, (0, 0), 6.0) for m in noise])
+    maps *= np.float32([0.9, 1.0, 0.8])[:, None, None]
+    kernel = np.ones((30, 30)) / 900.0
+    smoothed = np.stack([0.5 * (cv2.filter2D(m, -1, kernel) + m) for m in maps])
+    level = int(np.argmax(smoothed.reshape(3, -1).max(axis=1)))
+    out = smoothed[level] - smoothed[level].min()
+    out = np.clip(out / (out.max() + 1e-9) * 2.0 - 1.0, 0, 1)
+    expected_mask = _langsplat_smooth((out > 0.4).astype(np.uint8))
+    result = relevancy_mask(torch.from_numpy(maps))
+    assert int(result.level) == level
+    np.testing.assert_array_equal(result.mask.numpy().astype(np.uint8), expected_mask)
+    filtered = np.stack([cv2.filter2D(m, -1, kernel) for m in maps])
+    loc_level = int(np.argmax(filtered.reshape(3, -1).max(axis=1)))
+    yx = np.unravel_index(np.argmax(filtered[loc_level]), filtered[loc_level].shape)
+    got_level, got_yx = localization_point(torch.from_numpy(maps))
+    assert int(got_level) == loc_level and tuple(got_yx.tolist()) == tuple(int(v) for v in yx)
 
 
 # ---------------------------------------------------------------- level choice and normalisation
@@ -313,7 +419,7 @@ def test_relevancy_mask_batched_equals_single_calls() -> None:
 
 
 def test_relevancy_mask_at_langsplats_resolution_keeps_a_large_object() -> None:
-    # 1000 px: a 29-px box and the 7x7 majority vote, as LangSplat; only the corners round off.
+    # 1000 px: LangSplat's 30-px box and 7x7 majority vote; only the corners round off.
     gt = _rect(200, 300, 300, 400, shape=(750, 1000))
     mask = relevancy_mask(gt.float()[None]).mask
     assert not (mask & ~gt).any()

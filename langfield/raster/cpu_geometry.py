@@ -9,7 +9,10 @@ more than the arithmetic; here it is one pass forward and one pass back.
 The backward of the EWA projection, per Gaussian, chains (each line's gradient feeds the one above):
 
 - conic = inverse of the 2D covariance [[a, b], [b, c]] (a, c include the 0.3 px low-pass);
-- cov2d = J Sigma_cam J^T, J the Jacobian of the perspective projection at the (clamped) centre;
+- cov2d = J Sigma_cam J^T, J the Jacobian of the perspective projection at the centre, its tangent
+  clamped to :func:`langfield.raster.projection.tangent_limits` (gsplat's limits); outside them the
+  clamped coordinate is z times the limit, so its gradient goes to z only, as autograd of the
+  reference's ``z * clamp(x / z)`` gives;
 - Sigma_cam = W Sigma W^T, W the world-to-camera rotation;
 - Sigma = M M^T with M = R(q / |q|) diag(s);
 - means2d = (fx x / z + cx, fy y / z + cy) with (x, y, z) = W p + t.
@@ -30,7 +33,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from langfield.raster.binning import ALPHA_MIN, TILE_SIZE
-from langfield.raster.projection import EPS_2D, NEAR_PLANE, Projected
+from langfield.raster.projection import EPS_2D, NEAR_PLANE, Projected, tangent_limits
 
 _QUAT_NORM2_MIN = 1e-24  # as quat_to_rotmat's clamp
 
@@ -66,14 +69,11 @@ def _rotmat(w, x, y, z):
 
 @njit(parallel=True, cache=True)
 def _project_forward(
-    means, quats, scales, rot, trans, fx, fy, cx, cy, width, height, near, eps2d,
+    means, quats, scales, rot, trans, fx, fy, cx, cy, width, height, near, eps2d, lims,
     out_means2d, out_conics, out_depths, out_radii, out_valid, out_sigma, out_norm,
 ):  # fmt: skip
     n = means.shape[0]
-    lim_xp = (width - cx) / fx + 0.3 * width / fx
-    lim_xn = cx / fx + 0.3 * width / fx
-    lim_yp = (height - cy) / fy + 0.3 * height / fy
-    lim_yn = cy / fy + 0.3 * height / fy
+    lim_xn, lim_xp, lim_yn, lim_yp = lims[0], lims[1], lims[2], lims[3]  # projection.tangent_limits
     for i in prange(n):
         px, py, pz = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
         x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz + trans[0]
@@ -135,14 +135,11 @@ def _project_forward(
 
 @njit(parallel=True, cache=True)
 def _project_backward(
-    means, quats, scales, rot, trans, fx, fy, cx, cy, width, height, eps2d,
+    means, quats, scales, rot, trans, fx, fy, eps2d, lims,
     valid, sigma, norms, g_means2d, g_conics, out_g_means, out_g_quats, out_g_scales,
 ):  # fmt: skip
     n = means.shape[0]
-    lim_xp = (width - cx) / fx + 0.3 * width / fx
-    lim_xn = cx / fx + 0.3 * width / fx
-    lim_yp = (height - cy) / fy + 0.3 * height / fy
-    lim_yn = cy / fy + 0.3 * height / fy
+    lim_xn, lim_xp, lim_yn, lim_yp = lims[0], lims[1], lims[2], lims[3]  # the forward's limits
     for i in prange(n):
         for k in range(3):
             out_g_means[i, k] = 0.0
@@ -281,11 +278,13 @@ class _ProjectCPU(torch.autograd.Function):
         valid = np.empty(n, np.bool_)
         sigma = np.empty((n, 3, 3))
         norms = np.empty(n)
+        # Both backends clamp with the same limits, computed once by the reference's function.
+        lims = np.array(tangent_limits(float(width), float(height), fx, fy, cx, cy), np.float64)
         _project_forward(
-            m, q, s, rot, trans, fx, fy, cx, cy, float(width), float(height), float(near), float(eps2d),
+            m, q, s, rot, trans, fx, fy, cx, cy, float(width), float(height), float(near), float(eps2d), lims,
             means2d, conics, depths, radii, valid, sigma, norms,
         )  # fmt: skip
-        ctx.saved = (m, q, s, rot, trans, fx, fy, cx, cy, float(width), float(height), float(eps2d))
+        ctx.saved = (m, q, s, rot, trans, fx, fy, float(eps2d), lims)
         ctx.state = (valid, sigma, norms)
         out_radii = torch.from_numpy(radii)
         ctx.mark_non_differentiable(out_radii)
@@ -298,14 +297,14 @@ class _ProjectCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, _g_depths, _g_radii):
-        m, q, s, rot, trans, fx, fy, cx, cy, width, height, eps2d = ctx.saved
+        m, q, s, rot, trans, fx, fy, eps2d, lims = ctx.saved
         valid, sigma, norms = ctx.state
         n = m.shape[0]
         gm2 = np.zeros((n, 2)) if g_means2d is None else g_means2d.numpy().astype(np.float64)
         gcn = np.zeros((n, 3)) if g_conics is None else g_conics.numpy().astype(np.float64)
         g_means, g_quats, g_scales = np.empty((n, 3)), np.empty((n, 4)), np.empty((n, 3))
         _project_backward(
-            m, q, s, rot, trans, fx, fy, cx, cy, width, height, eps2d,
+            m, q, s, rot, trans, fx, fy, eps2d, lims,
             valid, sigma, norms, gm2, gcn, g_means, g_quats, g_scales,
         )  # fmt: skip
         as32 = lambda a: torch.from_numpy(a.astype(np.float32))  # noqa: E731

@@ -62,6 +62,30 @@ def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
     return m @ m.transpose(1, 2)
 
 
+def tangent_limits(
+    width: float, height: float, fx: float, fy: float, cx: float, cy: float
+) -> tuple[float, float, float, float]:
+    """How far off-screen the centre's tangents x/z, y/z may go before the EWA Jacobian is clamped.
+
+    gsplat's limits (``gsplat/cuda/_torch_impl.py``, ``_persp_proj``; ``persp_proj`` in
+    ``gsplat/cuda/csrc/utils.cuh``): the image edges as seen from the principal point, plus a margin of
+    0.3 tan(fov / 2), where tan(fov_x / 2) = 0.5 width / fx and tan(fov_y / 2) = 0.5 height / fy. With
+    the principal point at the image centre this is 3DGS's ``limx = 1.3f * tan_fovx``
+    (diff-gaussian-rasterization ``cuda_rasterizer/forward.cu``, ``computeCov2D``).
+
+    Returns:
+        ``(x_neg, x_pos, y_neg, y_pos)``: x/z is clamped to [-x_neg, x_pos], y/z to [-y_neg, y_pos].
+    """
+    margin_x = 0.3 * (0.5 * width / fx)
+    margin_y = 0.3 * (0.5 * height / fy)
+    return (
+        cx / fx + margin_x,
+        (width - cx) / fx + margin_x,
+        cy / fy + margin_y,
+        (height - cy) / fy + margin_y,
+    )
+
+
 def project_gaussians(
     means: Tensor,
     quats: Tensor,
@@ -99,10 +123,10 @@ def project_gaussians(
     in_front = z > near
     z_safe = torch.where(in_front, z, torch.ones_like(z))
 
-    # Clamp the tangent of off-screen centres, as 3DGS does: the affine approximation degrades
-    # far outside the frustum and would otherwise blow up the covariance.
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
+    # The Jacobian is taken at the centre's tangent clamped to a margin around the frustum
+    # (tangent_limits): far outside it the affine approximation would blow up the covariance. The
+    # projected mean itself is not clamped.
+    lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos = tangent_limits(width, height, fx, fy, cx, cy)
     tx = z_safe * torch.clamp(x / z_safe, -lim_x_neg, lim_x_pos)
     ty = z_safe * torch.clamp(y / z_safe, -lim_y_neg, lim_y_pos)
     zeros = torch.zeros_like(z_safe)
