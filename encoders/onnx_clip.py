@@ -124,7 +124,7 @@ class ClipTokenizer:
             [P, context_length] int64: SOT, the BPE ids, EOT, then zeros; a phrase too long is cut to
             the context length and its last token set to EOT.
         """
-        phrases = check_phrases(phrases, "ClipTokenizer")
+        phrases = check_phrases(phrases, "ClipTokenizer", allow_empty=True)
         out = np.zeros((len(phrases), self.context_length), dtype=np.int64)
         for i, phrase in enumerate(phrases):
             ids = [self.sot_id, *self.encode(phrase), self.eot_id][: self.context_length]
@@ -258,7 +258,8 @@ class OnnxClipEncoder:
         Returns:
             [P, dim] float32 unit rows.
         """
-        tokens = self.tokenizer(check_phrases(phrases, "OnnxClipEncoder.encode_text"))
+        phrases = check_phrases(phrases, "OnnxClipEncoder.encode_text")
+        tokens = self.tokenizer(phrases)
         if tokens.shape[0] == 0:
             return np.zeros((0, self.dim), dtype=np.float32)
         return self._run(self._text, tokens, self._text_path)

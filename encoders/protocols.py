@@ -140,12 +140,17 @@ def check_image(image: np.ndarray, where: str) -> np.ndarray:
     return arr
 
 
-def check_phrases(phrases: Sequence[str], where: str) -> list[str]:
-    """The phrases as a list of str; a bare string is refused rather than split into characters."""
+def check_phrases(phrases: Sequence[str], where: str, allow_empty: bool = False) -> list[str]:
+    """The phrases as a list of str; a bare string is refused rather than split into characters, and an
+    empty or blank phrase is refused (CLIP would embed its start and end tokens alone, a vector that
+    matches nothing in particular, and the query would report "no match" instead of the mistake).
+    ``allow_empty`` is for the tokenizer, which gives an empty phrase its start and end tokens."""
     if isinstance(phrases, str):
         raise TypeError(f"{where}: pass a list of phrases, e.g. [{phrases!r}], not a bare string")
     out = list(phrases)
     for p in out:
         if not isinstance(p, str):
             raise TypeError(f"{where}: every phrase must be a str, got {type(p).__name__} {p!r}")
+        if not allow_empty and not p.strip():
+            raise ValueError(f"{where}: empty phrase {p!r}; give the words to look for")
     return out

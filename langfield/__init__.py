@@ -32,3 +32,15 @@ __all__ = [
     "train",
 ]
 __version__ = "0.1.0"
+
+# Submodules a user reaches as attributes (`langfield.synthetic.make_room(...)`), imported on first use:
+# open3d (synthetic) and the rest are not paid for by `import langfield`.
+_LAZY_SUBMODULES = ("ablate", "bench", "geometry_eval", "query", "synthetic")
+
+
+def __getattr__(name: str):
+    if name in _LAZY_SUBMODULES:
+        import importlib
+
+        return importlib.import_module(f"langfield.{name}")
+    raise AttributeError(f"module 'langfield' has no attribute {name!r}")

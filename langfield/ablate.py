@@ -22,10 +22,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from langfield.atomic import atomic_path, check_writable_file
 from langfield.evaluate import evaluate
+from langfield.field import check_output_folder
 from langfield.geometry_eval import count_floaters, depth_errors
 from langfield.scene import Scene
-from langfield.trainer import TrainConfig, train
+from langfield.trainer import TrainConfig, check_inputs, train
 
 CASES: dict[str, dict[str, Any]] = {
     "full": {},
@@ -39,11 +41,15 @@ CASES: dict[str, dict[str, Any]] = {
 DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian")
 
 
-def run_case(scene: Scene, cfg: TrainConfig, out: Path | None = None, progress: bool = True) -> dict:
+def run_case(
+    scene: Scene, cfg: TrainConfig, out: Path | None = None, progress: bool = True, overwrite: bool = False
+) -> dict:
     """Trains one configuration and returns its table row (and saves the field to ``out`` if given)."""
+    if out is not None:
+        check_output_folder(out, overwrite)
     field = train(scene, cfg, progress=progress)
     if out is not None:
-        field.save(out)
+        field.save(out, overwrite=overwrite)
     report = evaluate(field, scene)
     depth = depth_errors(field, scene)
     floaters = count_floaters(field, scene)
@@ -67,16 +73,27 @@ def run_ablation(
     cases: tuple[str, ...] = DEFAULT_CASES,
     out_dir: str | Path | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, dict]:
-    """Runs ``cases`` with ``base``'s seed and budget; returns {case: row}; writes ablation.json/.md."""
+    """Runs ``cases`` with ``base``'s seed and budget; returns {case: row}; writes ablation.json/.md.
+
+    Every case's settings, the scene's files and the output folders are checked before the first
+    case trains; a case folder that holds a field is an error unless ``overwrite``.
+    """
     unknown = [c for c in cases if c not in CASES]
     if unknown:
         raise ValueError(f"unknown ablation case(s) {unknown}; choose from {', '.join(CASES)}")
     out = Path(out_dir) if out_dir is not None else None
+    configs = {case: replace(base, **CASES[case]) for case in cases}
+    if out is not None:
+        for name in ("ablation.json", "ablation.md"):
+            check_writable_file(out / name, "table")
+        for case in cases:
+            check_output_folder(out / case, overwrite)
+    check_inputs(scene, base, progress=progress)
     rows: dict[str, dict] = {}
-    for case in cases:
-        cfg = replace(base, **CASES[case])
-        rows[case] = run_case(scene, cfg, None if out is None else out / case, progress)
+    for case, cfg in configs.items():
+        rows[case] = run_case(scene, cfg, None if out is None else out / case, progress, overwrite)
         if out is not None:  # written after every case: an interrupted run keeps what it measured
             write_table(rows, out, base)
     return rows
@@ -100,9 +117,9 @@ def format_table(rows: dict[str, dict]) -> str:
 
 
 def write_table(rows: dict[str, dict], out: Path, base: TrainConfig) -> None:
-    out.mkdir(parents=True, exist_ok=True)
     meta = {"iterations": base.iterations, "seed": base.seed, "rows": rows}
-    (out / "ablation.json").write_text(json.dumps(meta, indent=2) + "\n")
-    (out / "ablation.md").write_text(
-        f"# Ablation ({base.iterations} iterations, seed {base.seed})\n\n{format_table(rows)}\n"
-    )
+    with atomic_path(out / "ablation.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=2) + "\n")
+    with atomic_path(out / "ablation.md") as tmp:
+        title = f"# Ablation ({base.iterations} iterations, seed {base.seed})"
+        tmp.write_text(f"{title}\n\n{format_table(rows)}\n")

@@ -8,7 +8,6 @@ file or argument, with exit status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import replace
@@ -77,11 +76,10 @@ def _load_field_and_scene(out: str, scene_path: str | None):
     return field, scene
 
 
-def cmd_train(args: argparse.Namespace) -> int:
-    from langfield.scene import load_scene
-    from langfield.trainer import TrainConfig, evaluate_psnr, summary_line, train
+def train_config(args: argparse.Namespace):
+    """The TrainConfig the flags of ``langfield train`` give (checked: a bad value names its flag)."""
+    from langfield.trainer import TrainConfig
 
-    scene = load_scene(args.scene, **_scene_args(args))
     cfg = TrainConfig(
         language=False if args.no_language else None,
         language_features=args.language_features,
@@ -96,13 +94,23 @@ def cmd_train(args: argparse.Namespace) -> int:
         lad=not args.no_lad,
         lop=not args.no_lop,
     )
-    if args.lambda_opacity is not None:
-        cfg = replace(cfg, lambda_opacity=args.lambda_opacity)
-    field = train(scene, cfg)
+    return cfg if args.lambda_opacity is None else replace(cfg, lambda_opacity=args.lambda_opacity)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from langfield.field import check_output_folder
+    from langfield.scene import load_scene
+    from langfield.trainer import evaluate_psnr, summary_line, train
+
+    cfg = train_config(args)
+    out = Path(args.out)
+    check_output_folder(out, args.force)
+    scene = load_scene(args.scene, **_scene_args(args))
+    field = train(scene, cfg)  # checks every file of the scene before the first iteration
     field.meta["scene_args"] = _scene_args(args)
-    field.save(args.out)
+    field.save(out, overwrite=args.force)
     test_psnr = evaluate_psnr(field, scene)
-    print(summary_line(field, test_psnr) + f"; saved to {args.out}")
+    print(summary_line(field, test_psnr) + f"; saved to {out}")
     return 0
 
 
@@ -111,12 +119,12 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     from langfield.scene import load_scene
     from langfield.trainer import TrainConfig
 
-    scene = load_scene(args.scene, **_scene_args(args))
     cases = tuple(c.strip() for c in args.cases.split(",")) if args.cases else DEFAULT_CASES
     base = TrainConfig(iterations=args.iterations, seed=args.seed, backend=args.backend)
     if args.lambda_opacity is not None:
         base = replace(base, lambda_opacity=args.lambda_opacity)
-    rows = run_ablation(scene, base, cases, out_dir=args.out)
+    scene = load_scene(args.scene, **_scene_args(args))
+    rows = run_ablation(scene, base, cases, out_dir=args.out, overwrite=args.force)
     print(format_table(rows))
     print(
         f"ablation of {len(rows)} cases, {args.iterations} iterations each; table in {args.out}/ablation.md"
@@ -127,10 +135,11 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 def cmd_render(args: argparse.Namespace) -> int:
     import torch
 
+    from langfield.atomic import check_writable_folder
     from langfield.evaluate import write_render_pngs
 
+    save = check_writable_folder(args.save, "--save")
     field, scene = _load_field_and_scene(args.out, args.scene)
-    save = Path(args.save)
     names = scene.names(args.split)
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -146,11 +155,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from langfield.atomic import check_writable_file, check_writable_folder
     from langfield.evaluate import evaluate, write_report
 
+    json_path = check_writable_file(args.json, "--json report")
+    check_writable_file(json_path.with_suffix(".md"), "Markdown summary")
+    pictures = check_writable_folder(json_path.parent / (json_path.stem + "_renders"), "pictures")
     field, scene = _load_field_and_scene(args.out, args.scene)
-    json_path = Path(args.json)
-    pictures = json_path.parent / (json_path.stem + "_renders")
     report = evaluate(field, scene, split=args.split, save_dir=pictures)
     md = write_report(report, json_path, pictures)
     psnr_txt = (
@@ -227,7 +238,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"[2/5] training on {len(scene.names('train'))} views ({args.iterations} iterations)")
     field = train(scene, TrainConfig(iterations=args.iterations, seed=args.seed))
     field.meta["scene_args"] = {"resolution": 1.0, "views": None, "n_views": None}
-    field.save(out / "field")
+    field.save(out / "field", overwrite=True)  # the demo's folder is its own: a rerun replaces it
     pictures = out / "renders"
     print(f"[3/5] rendering and scoring {len(scene.names('test'))} novel views to {pictures}")
     report = evaluate(field, scene, save_dir=pictures)
@@ -267,8 +278,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train a field on a scene's training views")
     p.add_argument("scene", help="scene folder (transforms.json, Blender pair, LLFF or COLMAP)")
     p.add_argument("--out", required=True, help="output folder for the trained field")
+    p.add_argument(
+        "--force", action="store_true", help="replace a field already in OUT (kept intact until then)"
+    )
     p.add_argument("--iterations", type=int, default=6000, help="training iterations (default 6000)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the start and the view order (default 0)")
     p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto", help="rasterizer backend")
     p.add_argument(
         "--num-gaussians", type=int, default=None, help="initial Gaussians (default: sized to the scene)"
@@ -309,9 +323,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("ablate", help="train the paper's ablation cases on one scene and tabulate them")
     p.add_argument("scene", help="scene folder")
     p.add_argument("--out", default="ablate_out", help="folder for the fields and ablation.json/.md")
+    p.add_argument("--force", action="store_true", help="replace the case fields already in OUT")
     p.add_argument("--iterations", type=int, default=1500, help="training iterations per case (default 1500)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto")
+    p.add_argument("--seed", type=int, default=0, help="seed of every case (default 0)")
+    p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto", help="rasterizer backend")
     p.add_argument(
         "--lambda-opacity",
         type=float,
@@ -329,7 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("render", help="render a trained field's views to PNGs")
     p.add_argument("out", help="folder of a trained field")
-    p.add_argument("--split", choices=["train", "test", "all"], default="test")
+    p.add_argument(
+        "--split", choices=["train", "test", "all"], default="test", help="views to render (default test)"
+    )
     p.add_argument("--save", required=True, help="folder for <view>_rgb.png and <view>_depth.png")
     p.add_argument("--scene", default=None, help="scene folder (default: the one recorded in field.json)")
     p.set_defaults(func=cmd_render)
@@ -345,7 +362,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="time the backends and trace quality against training time")
     p.add_argument("--scene", default=None, help="scene folder (default: the built-in scene at 160x120)")
-    p.add_argument("--resolution", type=float, default=1.0)
+    p.add_argument(
+        "--resolution", type=float, default=1.0, help="downscale factor of the images (2 halves them)"
+    )
     p.add_argument(
         "--json", default=None, help="result JSON (default OUT/bench.json); a PNG plot goes beside it"
     )
@@ -381,11 +400,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demo", help="generate the built-in scene, train on 3 views, render and report")
-    p.add_argument("--out", default="demo_out")
+    p.add_argument(
+        "--out", default="demo_out", help="the demo's own folder, replaced on a rerun (default demo_out)"
+    )
     p.add_argument("--iterations", type=int, default=1500, help="training iterations (default 1500)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--width", type=int, default=160)
-    p.add_argument("--height", type=int, default=120)
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene and the training (default 0)")
+    p.add_argument("--width", type=int, default=160, help="image width of the built-in scene (default 160)")
+    p.add_argument("--height", type=int, default=120, help="image height of the built-in scene (default 120)")
     p.set_defaults(func=cmd_demo)
 
     from langfield.cli_models import add_parsers
@@ -415,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(_join_negative_values(argv))
     try:
         return args.func(args)
-    except (FileNotFoundError, ValueError, json.JSONDecodeError) as err:
+    except (OSError, ValueError) as err:  # bad input, a path that cannot be written: one line
         print(f"langfield {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -14,7 +14,6 @@ import argparse
 import re
 import sys
 import time
-from pathlib import Path
 
 from encoders.text_table import UnknownPhraseError
 
@@ -61,11 +60,13 @@ def cmd_query(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
+    from langfield.atomic import check_writable_folder
     from langfield.field import LanguageField
     from langfield.query import MATCH_RELEVANCY, EmptySelectionError, make_query
     from langfield.scene import load_scene
     from querying.visualize import contact_sheet, heatmap_overlay, mask_overlay
 
+    save = check_writable_folder(args.save, "--save")
     field = LanguageField.load(args.out)
     scene_path = args.scene or field.meta.get("scene")
     if not scene_path:
@@ -80,7 +81,6 @@ def cmd_query(args: argparse.Namespace) -> int:
     except UnknownPhraseError as err:
         print(f"langfield query: error: {err}", file=sys.stderr)
         return 2
-    save = Path(args.save)
     save.mkdir(parents=True, exist_ok=True)
     stems = [_file_stem(p) for p in query.phrases]
     tiles, labels = [], []

@@ -23,6 +23,7 @@ import torch
 from encoders.cache import read_feature_cache
 from encoders.protocols import LEVELS, TextEncoder
 from encoders.text_table import UnknownPhraseError
+from langfield.atomic import atomic_path, check_writable_file
 from langfield.field import LanguageField
 from langfield.query import fill_empty, text_encoder_for
 from langfield.scene import Scene
@@ -241,12 +242,10 @@ def write_render_pngs(folder: Path, name: str, rgb: np.ndarray, depth: np.ndarra
 
 def write_report(report: dict, json_path: str | Path, pictures: str | Path | None = None) -> Path:
     """Writes the JSON report and a Markdown summary beside it; returns the Markdown path."""
-    json_path = Path(json_path)
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = json_path.with_name(json_path.name + ".tmp")
-    tmp.write_text(json.dumps(report, indent=2))
-    tmp.replace(json_path)
-    md = json_path.with_suffix(".md")
+    json_path = check_writable_file(json_path, "report")
+    md = check_writable_file(json_path.with_suffix(".md"), "summary")
+    with atomic_path(json_path) as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
     lines = ["# langfield evaluation", ""]
 
     def fmt(v: Any, digits: int = 3) -> str:
@@ -296,7 +295,8 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
         if sheets:
             lines += ["", "## Text queries (heat maps; masks, ground truth outlined in green)", ""]
             lines += [f"![{name} queries]({_relative(p, md.parent)})" for name, p in sheets]
-    md.write_text("\n".join(lines) + "\n")
+    with atomic_path(md) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return md
 
 

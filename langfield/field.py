@@ -4,9 +4,10 @@ On disk (FORMAT.md): ``field.safetensors`` (every tensor, no pickle), ``field.js
 version, bounds, training views, text-encoder reference, timings and the checksum of the tensors file),
 ``gaussians.ply`` (standard 3DGS) and, when the text encoder is a scene's phrase table, a copy of it
 (``text_embeddings.npz``) so that the folder answers text queries on its own. Files are first written
-under temporary names in the output folder, then renamed into place with ``field.json`` last;
-``field.json`` names the SHA-256 of the tensors and of the table it belongs to, so a field interrupted
-half-way through a save never loads silently mixed.
+completely into a staging folder beside the output folder, then moved into place with ``field.json``
+last; ``field.json`` names the SHA-256 of the tensors and of the table it belongs to, so a field
+interrupted half-way through a save never loads silently mixed. Loading checks field.json key by key
+and the tensors against it (:mod:`langfield.field_meta`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import hashlib
 import json
 import os
 import shutil
+import tempfile
 import warnings
 from dataclasses import asdict
 from pathlib import Path
@@ -28,6 +30,7 @@ from torch import Tensor, nn
 from encoders.autoencoder import AutoencoderConfig, LanguageDecoder, decoder_state, load_decoder
 from langfield import gaussians as G
 from langfield.camera import Camera
+from langfield.field_meta import FieldFileError, check_field_meta, check_tensors
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
 from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
@@ -233,18 +236,48 @@ class LanguageField(nn.Module):
             tensors.update({f"decoder.{k}": v for k, v in decoder_state(self.decoder).items()})
         return tensors
 
-    def save(self, out: str | Path) -> Path:
-        """Writes field.safetensors, field.json and gaussians.ply into ``out`` (atomically per file)."""
+    def save(self, out: str | Path, *, overwrite: bool = False) -> Path:
+        """Writes field.safetensors, field.json and gaussians.ply (and the phrase table) into ``out``.
+
+        Every file is first written completely into a staging folder beside ``out``: a new folder is
+        then renamed into place whole, and an existing field is replaced file by file with field.json
+        last, so an interrupted save leaves the old field loadable, or the new one.
+
+        Args:
+            out: the field folder.
+            overwrite: replace a field already in ``out`` (``langfield train --force``); else that is
+                an error and nothing is written.
+
+        Raises:
+            FileExistsError: ``out`` is a file, or holds a field and ``overwrite`` is False.
+        """
         out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        tensors_tmp = out / "field.safetensors.tmp"
-        save_file(self.state_tensors(), str(tensors_tmp))
-        digest = _sha256(tensors_tmp)
+        check_output_folder(out, overwrite)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".partial", dir=out.parent))
+        try:
+            table = self._write_files(staging)
+            if not out.exists():
+                os.rename(staging, out)
+                return out
+            names = [p.name for p in staging.iterdir() if p.name != "field.json"]
+            for name in names + ["field.json"]:
+                os.replace(staging / name, out / name)
+            if table is None and (out / TEXT_TABLE_FILE).exists():
+                (out / TEXT_TABLE_FILE).unlink()  # an older field's table, which this field does not use
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+        return out
+
+    def _write_files(self, folder: Path) -> Path | None:
+        """Writes the field's files into an empty ``folder``; returns the phrase table copied, if any."""
+        save_file(self.state_tensors(), str(folder / "field.safetensors"))
+        digest = _sha256(folder / "field.safetensors")
         with torch.no_grad():
             rgb = self.color.bake_dc(self.splats["means"]).numpy()
             quats = G.quats_normalized(self.splats).numpy()
         write_gaussian_ply(
-            out / "gaussians.ply",
+            folder / "gaussians.ply",
             self.splats["means"].detach().numpy(),
             np.clip(rgb, 0.0, 1.0),
             self.splats["opacity_logits"].detach().numpy(),
@@ -255,19 +288,12 @@ class LanguageField(nn.Module):
             self.meta, format_version=FORMAT_VERSION, num_gaussians=self.num_gaussians, tensors_sha256=digest
         )
         meta.pop("text_table_sha256", None)
-        table, table_copy = self._text_table(), out / TEXT_TABLE_FILE
+        table = self._text_table()
         if table is not None:
-            if not (table_copy.exists() and os.path.samefile(table, table_copy)):
-                shutil.copyfile(table, out / (TEXT_TABLE_FILE + ".tmp"))
-                os.replace(out / (TEXT_TABLE_FILE + ".tmp"), table_copy)
-            meta["text_table_sha256"] = _sha256(table_copy)
-        json_tmp = out / "field.json.tmp"
-        json_tmp.write_text(json.dumps(meta, indent=2, default=_json_default))
-        os.replace(tensors_tmp, out / "field.safetensors")
-        os.replace(json_tmp, out / "field.json")
-        if table is None and table_copy.exists():
-            table_copy.unlink()  # an older field's table, which this field does not use
-        return out
+            shutil.copyfile(table, folder / TEXT_TABLE_FILE)
+            meta["text_table_sha256"] = _sha256(folder / TEXT_TABLE_FILE)
+        (folder / "field.json").write_text(json.dumps(meta, indent=2, default=_json_default))
+        return table
 
     def _text_table(self) -> Path | None:
         """The phrase table to copy beside field.json: this field's copy if it was loaded with one,
@@ -288,46 +314,111 @@ class LanguageField(nn.Module):
 
     @classmethod
     def load(cls, out: str | Path) -> LanguageField:
-        """Loads a field written by :meth:`save`; errors name the file that is missing or wrong."""
+        """Loads a field written by :meth:`save`.
+
+        Raises:
+            FileNotFoundError: ``out`` or one of its files is missing.
+            FieldFileError: a file is damaged or disagrees with field.json; the message names the file
+                and the key.
+        """
         out = Path(out)
         meta_path, tensors_path = out / "field.json", out / "field.safetensors"
+        if not out.is_dir():
+            raise FileNotFoundError(f"{out}: not a field folder (no such folder)")
         for path in (meta_path, tensors_path):
             if not path.is_file():
                 raise FileNotFoundError(f"{path}: missing; is {out} a folder written by `langfield train`?")
         try:
             meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{meta_path}: not valid JSON ({err})") from err
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise ValueError(
-                f"{meta_path}: format_version {meta.get('format_version')!r}, expected {FORMAT_VERSION}"
-            )
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise FieldFileError(f"{meta_path}: not valid JSON ({err})") from err
+        check_field_meta(meta, meta_path, FORMAT_VERSION)
         if meta.get("tensors_sha256") and meta["tensors_sha256"] != _sha256(tensors_path):
-            raise ValueError(f"{tensors_path}: checksum differs from {meta_path}; the save was interrupted")
+            raise FieldFileError(
+                f"{tensors_path}: checksum differs from {meta_path}; the save was interrupted"
+            )
         table_path = out / TEXT_TABLE_FILE
         if meta.get("text_table_sha256") and table_path.is_file():
             if meta["text_table_sha256"] != _sha256(table_path):
-                raise ValueError(f"{table_path}: checksum differs from {meta_path}; the save was interrupted")
-        tensors = load_file(str(tensors_path))
-        splats = nn.ParameterDict(
-            {k.split(".", 1)[1]: nn.Parameter(v) for k, v in tensors.items() if k.startswith("splats.")}
-        )
+                raise FieldFileError(
+                    f"{table_path}: checksum differs from {meta_path}; the save was interrupted"
+                )
+        try:
+            tensors = load_file(str(tensors_path))
+        except Exception as err:  # safetensors raises its own error types for a damaged header
+            raise FieldFileError(f"{tensors_path}: not a readable safetensors file ({err})") from err
         color = build_color_field(meta)
-        color.load_state_dict(_prefixed(tensors, "color"))
         language = decoder = None
         spec = meta.get("language")
         if spec:
-            if spec["features"] == "hashgrid":
-                language = build_language_heads(meta)
-                language.load_state_dict(_prefixed(tensors, "language"))
-            decoder = load_decoder(_prefixed(tensors, "decoder"), autoencoder_config(spec))
+            language = build_language_heads(meta) if spec["features"] == "hashgrid" else None
+            try:
+                decoder = LanguageDecoder(autoencoder_config(spec))
+            except (TypeError, ValueError) as err:
+                raise FieldFileError(f"{meta_path}: language.autoencoder: {err}") from err
+        check_tensors(tensors, _expected_shapes(tensors, color, language, decoder), tensors_path, meta_path)
+        splats = nn.ParameterDict(
+            {k.split(".", 1)[1]: nn.Parameter(v) for k, v in tensors.items() if k.startswith("splats.")}
+        )
+        color.load_state_dict(_prefixed(tensors, "color"))
+        if language is not None:
+            language.load_state_dict(_prefixed(tensors, "language"))
+        if decoder is not None:
+            decoder = load_decoder(_prefixed(tensors, "decoder"), decoder.cfg)
         field = cls(splats, color, meta, language, decoder)
         field.folder = out
-        return field
+        # A loaded field is for rendering and querying: its renders carry no autograd graph (they are
+        # plain tensors, `.numpy()` works). `field.requires_grad_(True)` makes it trainable again.
+        return field.requires_grad_(False)
 
     def field_bytes(self) -> int:
         """Bytes of all tensors of the field."""
         return sum(t.numel() * t.element_size() for t in self.state_tensors().values())
+
+
+def check_output_folder(out: Path, overwrite: bool) -> None:
+    """Whether a field may be written to ``out``: a new folder, an existing folder without a field, or
+    (``overwrite``) one with a field. Checked before training, so no work is spent on a field that
+    cannot be saved.
+
+    Raises:
+        FileExistsError: ``out`` is a file, or holds a field and ``overwrite`` is False.
+        NotADirectoryError: a parent of ``out`` is a file.
+        PermissionError: the folder that would hold ``out`` cannot be written.
+    """
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: is a file, not a folder for the field")
+    if (out / "field.json").exists() and not overwrite:
+        raise FileExistsError(f"{out}: holds a field already; pass --force (overwrite=True) to replace it")
+    parent = next((p for p in [out, *out.parents] if p.exists()), Path("."))
+    if not parent.is_dir():
+        raise NotADirectoryError(f"{parent}: is a file, so the field folder {out} cannot be made")
+    if not os.access(parent, os.W_OK):
+        raise PermissionError(f"{parent}: cannot write there")
+
+
+def _expected_shapes(
+    tensors: dict[str, Tensor],
+    color: ColorField,
+    language: LanguageHeads | None,
+    decoder: LanguageDecoder | None,
+) -> dict[str, tuple[int, ...]]:
+    """Every tensor the field described by field.json has, with its shape (N from the means)."""
+    means = tensors.get("splats.means")
+    n = int(means.shape[0]) if means is not None and means.dim() == 2 else 0
+    shapes: dict[str, tuple[int, ...]] = {
+        "splats.means": (n, 3),
+        "splats.log_scales": (n, 3),
+        "splats.quats": (n, 4),
+        "splats.opacity_logits": (n, 1),
+    }
+    if decoder is not None and language is None:
+        shapes["splats.lang"] = (n, LANGUAGE_CHANNELS)
+    for prefix, module in (("color", color), ("language", language), ("decoder", decoder)):
+        if module is not None:
+            inner = module.decoder if prefix == "decoder" else module
+            shapes.update({f"{prefix}.{k}": tuple(v.shape) for k, v in inner.state_dict().items()})
+    return shapes
 
 
 def build_color_field(meta: dict[str, Any]) -> ColorField:

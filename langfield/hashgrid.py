@@ -24,6 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from langfield.hashgrid_cpu import InterpolateRowsNumba
+from langfield.kernels import notice_once
 
 # Instant-NGP's spatial-hash primes (paper eq. 4); the first is 1 for cache coherence.
 _PRIMES = (1, 2654435761, 805459861)
@@ -276,6 +277,7 @@ class HashGrid(nn.Module):
         if groups < 1 or f % groups:
             raise ValueError(f"groups must divide features_per_level={f}, got {groups}")
         if self.fast and self.table.device.type == "cpu":
+            notice_once()
             out = InterpolateRowsNumba.apply(
                 self.table.view(-1, f), rows, frac.to(self.table.dtype), self.cfg.table_size, groups
             )  # [G, N, L * F / G]

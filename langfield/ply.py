@@ -8,10 +8,11 @@ holds logits, ``scale_*`` log scales and ``rot_*`` the quaternion (w, x, y, z), 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
+
+from langfield.atomic import atomic_path
 
 SH_C0 = 0.28209479177387814
 N_REST = 45  # degree-3 SH: 15 coefficients x 3 colours
@@ -51,12 +52,9 @@ def write_gaussian_ply(
     header += f"element vertex {n}\n"
     header += "".join(f"property float {name}\n" for name in names)
     header += "end_header\n"
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(data.tobytes())
-    os.replace(tmp, path)
 
 
 def read_gaussian_ply(path: str | Path) -> dict[str, np.ndarray]:

@@ -26,7 +26,6 @@ Example:
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +42,7 @@ from encoders.cache import (
     write_feature_cache,
 )
 from encoders.protocols import DepthEstimator, ImageTextEncoder, Segmenter
+from langfield.atomic import atomic_path
 from langfield.scene import Scene, _read_rgba, load_scene
 
 __all__ = ["Models", "PreprocessError", "PreprocessReport", "load_models", "preprocess_scene"]
@@ -380,15 +380,9 @@ def _write_depth(scene: Scene, name: str, prior: np.ndarray, who: str) -> None:
         raise PreprocessError(
             f"{who}.estimate returned {arr.dtype} {arr.shape} for view {name!r}; expected finite float {hw}"
         )
-    path = _depth_path(scene, name)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:  # a file handle, so np.save does not append ".npy"
-            np.save(fh, arr.astype(np.float32), allow_pickle=False)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    # A file handle, so np.save does not append ".npy".
+    with atomic_path(_depth_path(scene, name)) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, arr.astype(np.float32), allow_pickle=False)
 
 
 def _record_depth_kind(scene: Scene, kind: str, todo: set[str]) -> tuple[str, Path | None]:
@@ -426,12 +420,8 @@ def _record_depth_kind(scene: Scene, kind: str, todo: set[str]) -> tuple[str, Pa
             )
         return kind, None
     meta["depth_kind"] = kind
-    tmp = source.with_name(f".{source.name}.{os.getpid()}.tmp")
-    try:
+    with atomic_path(source) as tmp:
         tmp.write_text(json.dumps(meta, indent=2, ensure_ascii=False) + "\n")
-        os.replace(tmp, source)
-    finally:
-        tmp.unlink(missing_ok=True)
     return kind, source
 
 

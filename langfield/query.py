@@ -250,7 +250,7 @@ def make_query(
     if field.decoder is None or not field.has_language:
         raise ValueError("this field has no language features (trained without language); cannot query")
     single = isinstance(phrases, str)
-    phrase_list = [phrases] if single else check_phrases(phrases, "query")
+    phrase_list = check_phrases([phrases] if single else phrases, "query")
     if not phrase_list:
         raise ValueError("query: no phrases given")
     encoder = text_encoder_for(field, text_encoder)

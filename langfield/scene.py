@@ -165,14 +165,19 @@ class Scene:
         The map may be stored at any size with the image's aspect ratio; it is resized bilinearly.
         """
         i = self._position(name)
-        path = self.root / "depths" / f"{self.views[i].name}.npy"
-        if not path.is_file():
+        path = self.depth_path(i)
+        if path is None:
             return None
         depth = _load_npy(path)
         _check_map_shape(path, depth.shape, self._layout.frames[i].camera)
         if not np.issubdtype(depth.dtype, np.number) or not np.isfinite(depth).all():
             raise SceneError(f"{path}: depth map has NaN, inf or non-numeric values")
         return self._align(i, depth.astype(np.float32), cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+
+    def depth_path(self, name: str | int) -> Path | None:
+        """`depths/<name>.npy` if the view has a depth prior, else None."""
+        path = self.root / "depths" / f"{self.views[self._position(name)].name}.npy"
+        return path if path.is_file() else None
 
     def segmentations(self, name: str | int) -> dict[str, np.ndarray]:
         """{phrase: [H, W] bool} from `segmentations/<name>/<phrase>.png` (non-zero = inside)."""
@@ -193,10 +198,43 @@ class Scene:
         return masks
 
     def feature_paths(self, name: str | int) -> tuple[Path, Path] | None:
-        """(`language_features/<name>_f.npy`, `<name>_s.npy`) if both exist, else None."""
+        """(`language_features/<name>_f.npy`, `<name>_s.npy`) if both exist, None if neither does.
+
+        Raises:
+            SceneError: one of the pair exists without the other (an interrupted preprocessing).
+        """
         stem = self.root / "language_features" / self.views[self._position(name)].name
         paths = (stem.with_name(stem.name + "_f.npy"), stem.with_name(stem.name + "_s.npy"))
-        return paths if all(p.is_file() for p in paths) else None
+        present = [p.is_file() for p in paths]
+        if all(present):
+            return paths
+        if any(present):
+            missing, there = (paths[1], paths[0]) if present[0] else (paths[0], paths[1])
+            raise SceneError(
+                f"{missing}: missing, though {there.name} is there (rerun `langfield preprocess`)"
+            )
+        return None
+
+    def check_view(self, name: str | int) -> None:
+        """Reads every file of a view (image, depth prior, feature cache, segmentation masks) and checks
+        it as training and evaluation will, without keeping the pixels: bad input is found before any
+        work is spent on it.
+
+        Raises:
+            SceneError: the first file that is missing, unreadable or of the wrong size
+                (``FeatureCacheError`` for a feature cache).
+        """
+        from encoders.cache import read_feature_cache
+
+        i = self._position(name)
+        if self.views[i].name not in self._cache:
+            self._read_image(i)
+        self.depth(i)
+        self.segmentations(i)
+        paths = self.feature_paths(i)
+        if paths is not None:
+            cam = self.views[i].camera
+            read_feature_cache(*paths, expected_hw=(cam.height, cam.width))
 
     def with_training_views(
         self, views: Sequence[str | int] | None = None, n_views: int | None = None

@@ -100,6 +100,84 @@ class TrainConfig:
     lop_gamma: int = LOP_GAMMA
     lop_tau: float = LOP_TAU
 
+    def __post_init__(self) -> None:
+        check_config(self)
+
+
+# The `langfield train` flag of each setting that has one, named in the messages of check_config.
+CONFIG_FLAGS = {
+    "iterations": "--iterations",
+    "seed": "--seed",
+    "backend": "--backend",
+    "num_gaussians": "--num-gaussians",
+    "bounds": "--bounds",
+    "language_features": "--language-features",
+    "language_grid_scale": "--language-grid-scale",
+    "lambda_opacity": "--lambda-opacity",
+}
+
+
+def check_config(cfg: TrainConfig) -> None:
+    """Rejects a setting no training can use, before any work: one ValueError naming the setting
+    (and its ``langfield train`` flag)."""
+
+    def fail(name: str, expected: str) -> None:
+        flag = f" ({CONFIG_FLAGS[name]})" if name in CONFIG_FLAGS else ""
+        raise ValueError(f"TrainConfig.{name}{flag} must be {expected}, got {getattr(cfg, name)!r}")
+
+    def whole(name: str, low: int, optional: bool = False) -> None:
+        value = getattr(cfg, name)
+        if optional and value is None:
+            return
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            fail(name, f"a whole number >= {low}" + (" (or None: sized to the scene)" if optional else ""))
+
+    def number(name: str, low: float, high: float = math.inf, open_low: bool = False) -> None:
+        value = getattr(cfg, name)
+        ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+        ok = ok and math.isfinite(value)
+        if not ok or value < low or (open_low and value == low) or value > high:
+            lower = f"> {low}" if open_low else f">= {low}"
+            fail(name, f"a finite number {lower}" + ("" if high == math.inf else f" and <= {high}"))
+
+    whole("iterations", 0)
+    whole("seed", 0)
+    if cfg.backend not in ("auto", "torch", "cpu"):
+        fail("backend", "'auto', 'torch' or 'cpu'")
+    whole("num_gaussians", 1, optional=True)
+    whole("max_gaussians", 1, optional=True)
+    if cfg.log2_table_size is not None and not (
+        isinstance(cfg.log2_table_size, int) and 8 <= cfg.log2_table_size <= 30
+    ):
+        fail("log2_table_size", "a whole number in [8, 30] (or None: sized to the scene)")
+    if cfg.bounds is not None:
+        try:
+            box = np.asarray(cfg.bounds, dtype=np.float64)
+        except (TypeError, ValueError):
+            box = np.zeros(0)
+        if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] <= box[0]).any():
+            fail("bounds", "((xmin, ymin, zmin), (xmax, ymax, zmax)) with max > min")
+    whole("refine_start", 0)
+    whole("refine_every", 1)
+    whole("refine_stop", 0, optional=True)
+    number("grad_threshold", 0.0, open_low=True)
+    number("prune_opacity", 0.0, 1.0)
+    whole("color_hidden", 1)
+    whole("color_freqs", 0)
+    for name in ("grid_lr", "mlp_lr", "per_gaussian_language_lr"):
+        number(name, 0.0, open_low=True)
+    if cfg.language_features not in ("hashgrid", "per-gaussian"):
+        fail("language_features", "'hashgrid' or 'per-gaussian'")
+    whole("language_hidden", 1)
+    number("language_grid_scale", 0.0, 1.0, open_low=True)
+    whole("autoencoder_iterations", 1)
+    number("lambda_dssim", 0.0, 1.0)
+    for name in ("lambda_language", "lambda_depth", "lambda_sa", "lambda_opacity"):
+        number(name, 0.0)
+    whole("lop_every", 0)
+    whole("lop_gamma", 1)
+    number("lop_tau", 0.0, 1.0, open_low=True)
+
 
 Callback = Callable[[int, float, LanguageField], None]
 
@@ -139,6 +217,44 @@ class LanguageTargets:
     config: AutoencoderConfig
     segments: dict[str, Tensor]  # view name -> [3, H, W] mask ids, -1 = none (LAD's masks)
     prototypes: list[Tensor]  # per level, [P_l, 3] distinct latents of the masks used there (LOP)
+
+
+def check_inputs(scene: Scene, cfg: TrainConfig, progress: bool = True) -> None:
+    """Reads and checks every file training and the evaluation after it will read, before any work:
+    each view's image (its size against its intrinsics), depth prior, feature cache and segmentation
+    masks, the bounds, and whether the training views agree on having language and depth targets.
+
+    Raises:
+        ValueError: the first problem, naming the file or setting (a SceneError, FeatureCacheError).
+    """
+    train_names = scene.names("train")
+    if not train_names:
+        raise ValueError(f"{scene.root}: no training views; choose them with views= or n_views=")
+    scene_bounds(scene, cfg)
+    for name in tqdm(scene.names("all"), desc="check", disable=not progress, leave=False):
+        scene.check_view(name)
+    if cfg.language is not False:
+        have = [n for n in train_names if scene.feature_paths(n) is not None]
+        missing = [n for n in train_names if n not in have]
+        if missing and (cfg.language or have):
+            raise ValueError(
+                f"{scene.root}/language_features: no feature cache for training views {missing}"
+                + (f" (views {have} have one)" if have else "")
+                + "; run `langfield preprocess` or train without language (--no-language)"
+            )
+    if cfg.depth is not False:
+        have = [n for n in train_names if scene.depth_path(n) is not None]
+        missing = [n for n in train_names if n not in have]
+        if missing and (cfg.depth or have):
+            raise ValueError(
+                f"{scene.root}/depths: no depth prior for training views {missing}"
+                + (f" (views {have} have one)" if have else "")
+                + "; run `langfield preprocess` or train without it (--no-depth)"
+            )
+        if have and scene.depth_kind is None:
+            raise ValueError(
+                f"{scene.root}: depths/ needs depth_kind ('depth' or 'disparity') in transforms.json"
+            )
 
 
 def language_targets(scene: Scene, cfg: TrainConfig, progress: bool = True) -> LanguageTargets | None:
@@ -245,8 +361,6 @@ def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None 
             splats["lang"] = torch.nn.Parameter(torch.zeros(n, LANGUAGE_CHANNELS))
         elif cfg.language_features == "hashgrid":
             lang_grid = grid
-            if not 0.0 < cfg.language_grid_scale <= 1.0:
-                raise ValueError(f"language_grid_scale must be in (0, 1], got {cfg.language_grid_scale}")
             if cfg.language_grid_scale != 1.0:
                 finest = max(grid.base_resolution, round(grid.finest_resolution * cfg.language_grid_scale))
                 levels = max(2, round(grid.n_levels * cfg.language_grid_scale**0.5))
@@ -351,13 +465,8 @@ def train(
         The trained :class:`LanguageField`; ``field.meta`` records timings and sizes.
     """
     cfg = cfg or TrainConfig()
+    check_inputs(scene, cfg, progress=progress)
     train_names = scene.names("train")
-    if not train_names:
-        raise ValueError(f"{scene.root}: no training views; choose them with views= or n_views=")
-    if cfg.iterations < 0:
-        raise ValueError(f"iterations must be >= 0, got {cfg.iterations}")
-    if not (math.isfinite(cfg.lambda_opacity) and cfg.lambda_opacity >= 0):
-        raise ValueError(f"lambda_opacity must be finite and >= 0, got {cfg.lambda_opacity}")
     targets = language_targets(scene, cfg, progress=progress)
     depths = depth_targets(scene, cfg, targets)
     field = build_field(scene, cfg, targets)

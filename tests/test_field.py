@@ -188,8 +188,9 @@ def test_save_over_an_older_field_overwrites_it_cleanly(field, scene, tmp_path) 
     out = tmp_path / "out"
     older = train(scene, TrainConfig(iterations=0, num_gaussians=300, seed=1), progress=False)
     older.save(out)
-    (out / "field.json.tmp").write_text("left over by an interrupted run")
-    field.save(out)
+    with pytest.raises(FileExistsError, match="--force"):
+        field.save(out)
+    field.save(out, overwrite=True)
     loaded = LanguageField.load(out)
     assert loaded.num_gaussians == N
     assert torch.equal(loaded.splats["means"], field.splats["means"].detach())

@@ -363,7 +363,10 @@ def test_segmentations_and_feature_paths(tmp_path: Path) -> None:
         tmp_path / "language_features" / "000_f.npy",
         tmp_path / "language_features" / "000_s.npy",
     )
-    assert scene.feature_paths("001") is None
+    # Half a pair is an interrupted preprocessing, not "no cache": said, not silently skipped.
+    with pytest.raises(SceneError, match="001_s.npy: missing, though 001_f.npy is there"):
+        scene.feature_paths("001")
+    assert scene.feature_paths("002") is None
     assert scene.depth_kind == "depth" and scene.text_embeddings_path is None
 
 

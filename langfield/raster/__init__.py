@@ -132,7 +132,10 @@ def rasterize(
     if resolve_backend(backend) == "torch":
         project = project_gaussians
     else:
+        from langfield.kernels import notice_once
         from langfield.raster.cpu_geometry import project_gaussians_cpu as project
+
+        notice_once()
     projected = project(
         means, quats, scales, camera.world_to_camera(), camera.intrinsics(), camera.width, camera.height, near
     )
