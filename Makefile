@@ -4,19 +4,25 @@ VENV ?= .venv
 TORCH ?= torch==2.13.0
 BIN := $(VENV)/bin
 DEMO_OUT ?= demo_out
+# Exact versions of everything installed (pip constraints): a fresh clone gets what was tested.
+# `make lock` refreshes them from the newest releases pyproject.toml's ranges allow.
+LOCK ?= locks/main.txt
+EXPORT_LOCK ?= locks/export.txt
 
-.PHONY: install system test test-export lint demo clean
+.PHONY: install system test test-export test-latest lint demo lock clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
-# torch goes in first and pinned: an unpinned torch pulls a CUDA build of several GB.
-$(VENV)/.installed: $(BIN)/python pyproject.toml
-	$(BIN)/pip install "$(TORCH)"
-	$(BIN)/pip install -e ".[test]"
+# torch goes in first and pinned: an unpinned torch pulls a CUDA build of several GB. The kernels are
+# compiled here, once, so that the first `langfield train` does not stop for them.
+$(VENV)/.installed: $(BIN)/python pyproject.toml $(LOCK)
+	$(BIN)/pip install -c $(LOCK) "$(TORCH)"
+	$(BIN)/pip install -c $(LOCK) -e ".[test]"
+	$(BIN)/python -c "from langfield.kernels import main; main()"
 	touch $@
 
-install: $(VENV)/.installed system
+install: system $(VENV)/.installed
 
 # open3d needs libusb-1.0 from the system.
 system:
@@ -38,16 +44,33 @@ EXPORT_BIN := $(EXPORT_VENV)/bin
 $(EXPORT_BIN)/python:
 	$(PYTHON) -m venv $(EXPORT_VENV)
 
-$(EXPORT_VENV)/.installed: $(EXPORT_BIN)/python pyproject.toml
-	$(EXPORT_BIN)/pip install $(EXPORT_TORCH)
-	$(EXPORT_BIN)/pip install -e ".[export,test]"
+$(EXPORT_VENV)/.installed: $(EXPORT_BIN)/python pyproject.toml $(EXPORT_LOCK)
+	$(EXPORT_BIN)/pip install -c $(EXPORT_LOCK) $(EXPORT_TORCH)
+	$(EXPORT_BIN)/pip install -c $(EXPORT_LOCK) -e ".[export,test]"
 	touch $@
 
-test-export: $(EXPORT_VENV)/.installed system
+test-export: system $(EXPORT_VENV)/.installed
 	$(EXPORT_BIN)/python -m pytest -q -m export
 
 demo: install
 	$(BIN)/langfield demo --out $(DEMO_OUT)
 
+# Refreshes both locks from the newest releases the ranges allow, in throwaway venvs; run the suite
+# (`make test test-export`) before committing the new locks.
+lock:
+	bash scripts/lock.sh "$(PYTHON)" "$(TORCH)" "[test]" $(LOCK)
+	bash scripts/lock.sh "$(PYTHON)" "$(EXPORT_TORCH)" "[export,test]" $(EXPORT_LOCK)
+
+# The newest releases, unlocked (not in CI): tells whether the next `make lock` will pass.
+LATEST_VENV ?= .venv-latest
+test-latest: system
+	rm -rf $(LATEST_VENV)
+	$(PYTHON) -m venv $(LATEST_VENV)
+	$(LATEST_VENV)/bin/pip install "$(TORCH)"
+	$(LATEST_VENV)/bin/pip install --upgrade -e ".[test]"
+	$(LATEST_VENV)/bin/pip freeze --exclude-editable
+	$(LATEST_VENV)/bin/ruff check .
+	$(LATEST_VENV)/bin/python -m pytest -q
+
 clean:
-	rm -rf $(VENV) $(EXPORT_VENV) $(DEMO_OUT) .pytest_cache
+	rm -rf $(VENV) $(EXPORT_VENV) $(LATEST_VENV) $(DEMO_OUT) .pytest_cache
