@@ -22,7 +22,7 @@ import numpy as np
 
 FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
-KINDS = ("clip", "sam", "depth")
+KINDS = ("clip", "sam", "depth", "refiner")
 
 
 class ManifestError(ValueError):

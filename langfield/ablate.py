@@ -11,6 +11,16 @@ Cases (each a :class:`~langfield.trainer.TrainConfig` change from the full metho
 - ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP; the comparison of
   issue 5's mIoU target.
 
+The sparse-view switches (:mod:`langfield.regularisers`, :mod:`langfield.initialisation`), each one
+change from the defaults:
+
+- ``random-init``, ``sfm-init``, ``depth-init``: another start than the plane-sweep points;
+- ``no-dropout``: without Gaussian dropout; ``virtual``: with the virtual-view consistency term;
+  ``anisotropy``: with the anisotropy penalty.
+
+Cases that need what a scene lacks (language features, depth priors) are skipped with a warning:
+they would train ``full`` again. ``GEOMETRY_CASES`` are the sparse-view set.
+
 Each row: mIoU / mAcc (where the scene has labels and querying can score them), PSNR and SSIM on test
 views, aligned depth error and floaters (scenes with ground truth), training seconds and Gaussians.
 """
@@ -18,6 +28,7 @@ views, aligned depth error and floaters (scenes with ground truth), training sec
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -37,8 +48,18 @@ CASES: dict[str, dict[str, Any]] = {
     "per-gaussian": {"language_features": "per-gaussian"},
     "no-opacity-reg": {"lambda_opacity": 0.0},
     "baseline": {"language_features": "per-gaussian", "depth": False, "lop": False},
+    "random-init": {"init": "random"},
+    "sfm-init": {"init": "sfm"},
+    "depth-init": {"init": "depth"},
+    "no-dropout": {"drop_gamma": 0.0},
+    "virtual": {"lambda_virtual": 1.0},
+    "anisotropy": {"lambda_anisotropy": 0.01},
+    "smooth": {"lambda_smooth": 0.1},
 }
-DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian")
+LANGUAGE_CASES = ("no-lop", "per-gaussian", "baseline")
+DEPTH_CASES = ("no-lad", "no-depth", "depth-init")
+DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian", "random-init", "no-dropout")
+GEOMETRY_CASES = ("full", "random-init", "sfm-init", "no-dropout", "virtual", "anisotropy")
 
 
 def run_case(
@@ -58,6 +79,7 @@ def run_case(
         "mAcc": report.get("mAcc"),
         "PSNR": report["PSNR"],
         "SSIM": report["SSIM"],
+        "masked_PSNR": report.get("masked_PSNR"),
         "depth_abs_rel": None if depth is None else depth["abs_rel"],
         "floaters": None if floaters is None else floaters["floaters"],
         "train_seconds": field.meta["train_seconds"],
@@ -84,6 +106,20 @@ def run_ablation(
     if unknown:
         raise ValueError(f"unknown ablation case(s) {unknown}; choose from {', '.join(CASES)}")
     out = Path(out_dir) if out_dir is not None else None
+    names = scene.names("train")
+    has_language = base.language is not False and all(scene.feature_paths(n) is not None for n in names)
+    has_depth = base.depth is not False and all(scene.depth_path(n) is not None for n in names)
+    skipped = [
+        c
+        for c in cases
+        if (c in LANGUAGE_CASES and not has_language) or (c in DEPTH_CASES and not has_depth)
+    ]
+    if skipped:
+        warnings.warn(
+            f"{scene.root}: cases {skipped} need language features or depth priors it lacks; skipped",
+            stacklevel=2,
+        )
+    cases = tuple(c for c in cases if c not in skipped)
     configs = {case: replace(base, **CASES[case]) for case in cases}
     if out is not None:
         for name in ("ablation.json", "ablation.md"):
@@ -105,12 +141,15 @@ def format_table(rows: dict[str, dict]) -> str:
     def fmt(v: Any, digits: int) -> str:
         return "n/a" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
-    head = "| case | mIoU | mAcc | PSNR | SSIM | depth AbsRel | floaters | Gaussians | s | ms/it |"
-    lines = [head, "|" + "---|" * 10]
+    head = (
+        "| case | mIoU | mAcc | PSNR | SSIM | masked PSNR | depth AbsRel | floaters | Gaussians | s | ms/it |"
+    )
+    lines = [head, "|" + "---|" * 11]
     for case, r in rows.items():
         lines.append(
             f"| {case} | {fmt(r['mIoU'], 3)} | {fmt(r['mAcc'], 3)} | {fmt(r['PSNR'], 2)} | "
-            f"{fmt(r['SSIM'], 3)} | {fmt(r['depth_abs_rel'], 4)} | {fmt(r['floaters'], 0)} | "
+            f"{fmt(r['SSIM'], 3)} | {fmt(r.get('masked_PSNR'), 2)} | {fmt(r['depth_abs_rel'], 4)} | "
+            f"{fmt(r['floaters'], 0)} | "
             f"{r['num_gaussians']} | {r['train_seconds']:.0f} | {r['ms_per_iteration']:.0f} |"
         )
     return "\n".join(lines)

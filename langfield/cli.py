@@ -88,11 +88,13 @@ def train_config(args: argparse.Namespace):
         seed=args.seed,
         backend=args.backend,
         num_gaussians=args.num_gaussians,
+        init=args.init,
         bounds=args.bounds,
         densify=not args.no_densify,
         depth=False if args.no_depth else None,
         lad=not args.no_lad,
         lop=not args.no_lop,
+        refiner=args.refiner,
     )
     return cfg if args.lambda_opacity is None else replace(cfg, lambda_opacity=args.lambda_opacity)
 
@@ -169,6 +171,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if report["PSNR"] is not None
         else f"no {args.split} views"
     )
+    if report.get("masked_PSNR") is not None:
+        psnr_txt += f" (object masks: {report['masked_PSNR']:.2f} dB, SSIM {report['masked_SSIM']:.3f})"
     query_txt = (
         f", mIoU {report['mIoU']:.3f}, mAcc {report['mAcc']:.3f}" if report.get("mIoU") is not None else ""
     )
@@ -288,6 +292,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--num-gaussians", type=int, default=None, help="initial Gaussians (default: sized to the scene)"
     )
     p.add_argument(
+        "--init",
+        choices=["dense", "sfm", "depth", "random"],
+        default="dense",
+        help="where the Gaussians start: plane-sweep stereo on the training views (default), COLMAP's "
+        "sparse SIFT points, the depth prior aligned to the dense points, or random in the bounds",
+    )
+    p.add_argument(
         "--bounds", type=_bounds_arg, default=None, help="xmin,ymin,zmin,xmax,ymax,zmax to initialise in"
     )
     p.add_argument(
@@ -310,6 +321,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="weight of the L1 opacity penalty that fades unneeded Gaussians (default: TrainConfig's)",
+    )
+    p.add_argument(
+        "--refiner",
+        default=None,
+        help="an ONNX image-refiner folder (manifest kind 'refiner'): cleans renders of virtual views "
+        "that then supervise training, weighted by its confidence (default: none)",
     )
     p.add_argument(
         "--no-language",
@@ -336,8 +353,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--cases",
         default=None,
-        help="comma-separated subset of full,no-lop,no-lad,no-depth,per-gaussian,baseline "
-        "(default: all but baseline)",
+        help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, baseline, "
+        "no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, virtual, anisotropy (default: full, "
+        "no-lop, no-lad, no-depth, per-gaussian, random-init, no-dropout; those a scene cannot use skipped)",
     )
     _add_scene_flags(p)
     p.set_defaults(func=cmd_ablate)

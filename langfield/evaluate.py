@@ -64,6 +64,8 @@ def evaluate(
     views: list[dict[str, Any]] = []
     cosines: list[list[float]] = []
     save = Path(save_dir) if save_dir is not None else None
+    sheet_tiles: list[np.ndarray] = []
+    sheet_labels: list[str] = []
     names = scene.names(split)
     labels = {name: scene.segmentations(name) for name in names} if field.decoder is not None else {}
     embeddings = _label_embeddings(field, labels, text_encoder, scene)
@@ -84,25 +86,29 @@ def evaluate(
                 queries = score_queries(maps, phrases, labels[name])
                 if save is not None:
                     write_query_sheet(save, name, out.rgb, maps, phrases, labels[name], queries)
-            views.append(
-                {
-                    "name": name,
-                    "PSNR": psnr(out.rgb, target),
-                    "SSIM": ssim(out.rgb, target),
-                    "queries": queries,
-                }
-            )
+            record = {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target)}
+            object_mask = scene.object_mask(name)
+            if object_mask is not None:
+                record.update(masked_scores(out.rgb, target, torch.from_numpy(object_mask)))
+            views.append({**record, "queries": queries})
             if save is not None:
                 write_render_pngs(save, name, out.rgb.numpy(), out.depth.numpy(), out.alpha.numpy())
+                sheet_tiles += _view_tiles(out, target)
+                sheet_labels += [f"{name} {record['PSNR']:.2f} dB", "depth", "ground truth"]
+    if save is not None and views:
+        write_contact_sheet(save / "views_sheet.png", sheet_tiles, sheet_labels, columns=3)
     m = field.meta
     summary = summarize_queries(q for v in views for q in v["queries"].values())
 
     def mean(key: str) -> float | None:
-        return float(np.mean([v[key] for v in views])) if views else None
+        values = [v[key] for v in views if key in v]
+        return float(np.mean(values)) if values else None
 
     return {
         "PSNR": mean("PSNR"),
         "SSIM": mean("SSIM"),
+        "masked_PSNR": mean("masked_PSNR"),
+        "masked_SSIM": mean("masked_SSIM"),
         "mIoU": summary["mIoU"],
         "mAcc": summary["mAcc"],
         "train_seconds": m.get("train_seconds"),
@@ -114,6 +120,17 @@ def evaluate(
         "feature_cosine": _level_means(cosines),
         "views": views,
     }
+
+
+def masked_scores(rgb: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
+    """PSNR and SSIM with the background removed from both images (the DTU protocol of RegNeRF and
+    DNGaussian: both set to black outside the object mask, then scored over the whole image).
+
+    Args:
+        rgb, target: [H, W, 3] images; mask: [H, W] bool object mask.
+    """
+    keep = mask.to(rgb.dtype)[..., None]
+    return {"masked_PSNR": psnr(rgb * keep, target * keep), "masked_SSIM": ssim(rgb * keep, target * keep)}
 
 
 def _level_means(rows: list[list[float]]) -> dict[str, float | None] | None:
@@ -232,6 +249,24 @@ def depth_to_png(depth: np.ndarray, alpha: np.ndarray | None = None) -> np.ndarr
     return img
 
 
+def _view_tiles(out, target: torch.Tensor) -> list[np.ndarray]:
+    """The render, its depth and the ground truth of one view, as uint8 RGB tiles."""
+    as_uint8 = lambda image: (np.clip(np.asarray(image), 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
+    depth = cv2.cvtColor(depth_to_png(out.depth.numpy(), out.alpha.numpy()), cv2.COLOR_BGR2RGB)
+    return [as_uint8(out.rgb), depth, as_uint8(target)]
+
+
+def write_contact_sheet(path: Path, tiles: list[np.ndarray], labels: list[str], columns: int) -> Path:
+    """A labelled grid of RGB tiles as a PNG (``querying.visualize.contact_sheet``)."""
+    sheet = contact_sheet(tiles, labels, columns=columns)
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError(f"{path}: OpenCV could not encode the contact sheet")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(encoded.tobytes())
+    return path
+
+
 def write_render_pngs(folder: Path, name: str, rgb: np.ndarray, depth: np.ndarray, alpha: np.ndarray) -> None:
     """Writes ``<name>_rgb.png`` and ``<name>_depth.png`` into ``folder``."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -285,6 +320,9 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
     if pictures is not None:
         rel = Path(pictures).resolve()
         lines += ["", "## Renders (RGB, depth)", ""]
+        sheet = rel / "views_sheet.png"
+        if sheet.exists():
+            lines += [f"![every view: render, depth, ground truth]({_relative(sheet, md.parent)})", ""]
         for v in report["views"]:
             for kind in ("rgb", "depth"):
                 p = rel / f"{v['name']}_{kind}.png"

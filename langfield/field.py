@@ -146,20 +146,34 @@ class LanguageField(nn.Module):
         *,
         backend: Backend | None = None,
         hard_depth: bool = False,
+        language: bool = True,
+        opacity_scale: Tensor | None = None,
     ) -> Render:
-        """Renders colour, soft depth and alpha (and optionally hard depth) from ``camera``."""
+        """Renders colour, soft depth and alpha (and optionally hard depth) from ``camera``.
+
+        Args:
+            camera: any camera.
+            backend: the rasterizer backend (default: the field's).
+            hard_depth: also render the hard depth of eq. 7.
+            language: render the latents too (when the field has language).
+            opacity_scale: [N] factors on the opacities (Gaussian dropout during training).
+        """
         backend = backend or self.meta.get("backend", "auto")
         means = self.splats["means"]
         quats = self.splats["quats"]
         scales = G.scales(self.splats)
         opac = G.opacities(self.splats).reshape(-1)
+        keep = None
+        if opacity_scale is not None:
+            opac = opac * opacity_scale
+            keep = (opacity_scale > 0).to(opac.dtype)  # the hard depth drops the same Gaussians
         center = torch.as_tensor(camera.center, dtype=means.dtype)
         offset = means - center
         dist = torch.sqrt((offset * offset).sum(-1, keepdim=True) + 1e-12)
         corners = self.color.grid.corners(means)
         rgb = self.color(means, offset / dist, corners)
         features = [rgb, dist]
-        latents = self.gaussian_latents(corners)
+        latents = self.gaussian_latents(corners) if language else None
         if latents is not None:
             features.append(latents.reshape(-1, LANGUAGE_CHANNELS))
         features = torch.cat(features, dim=-1)
@@ -185,7 +199,7 @@ class LanguageField(nn.Module):
                 means,
                 quats.detach(),
                 scales.detach(),
-                torch.full_like(opac, HARD_DEPTH_OPACITY),
+                torch.full_like(opac, HARD_DEPTH_OPACITY) * (1.0 if keep is None else keep),
                 dist,
                 camera,
                 backend=backend,

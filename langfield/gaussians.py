@@ -53,16 +53,29 @@ def init_gaussians(bounds: np.ndarray, num: int, *, seed: int, init_opacity: flo
     lo, hi = _check_bounds(bounds)
     if num < 1:
         raise ValueError(f"need at least one Gaussian, got num={num}")
-    if not 0.0 < init_opacity < 1.0:
-        raise ValueError(f"init_opacity must be in (0, 1), got {init_opacity}")
     gen = torch.Generator().manual_seed(int(seed))
     lo_t, hi_t = torch.from_numpy(lo).float(), torch.from_numpy(hi).float()
     means = lo_t + torch.rand(num, 3, generator=gen) * (hi_t - lo_t)
+    return gaussians_at(means, init_opacity=init_opacity, lone_scale=0.01 * float(np.linalg.norm(hi - lo)))
+
+
+def gaussians_at(points: Tensor, *, init_opacity: float = 0.1, lone_scale: float = 0.01) -> nn.ParameterDict:
+    """Gaussians centred at ``points`` [N, 3] (3DGS's initialisation from a point cloud): identity
+    rotations, isotropic scales from the 3 nearest neighbours (``distCUDA2``), opacity ``init_opacity``.
+
+    ``lone_scale``: the scale of a single point, which has no neighbours.
+    """
+    if points.dim() != 2 or points.shape[1] != 3 or points.shape[0] < 1:
+        raise ValueError(f"need points [N >= 1, 3], got {tuple(points.shape)}")
+    if not 0.0 < init_opacity < 1.0:
+        raise ValueError(f"init_opacity must be in (0, 1), got {init_opacity}")
+    means = points.detach().float().clone()
+    num = means.shape[0]
     if num > 1:
         log_scales = log_scales_from_neighbors(means)
     else:
         # A lone Gaussian has no neighbours; give it a hundredth of the box, like 3DGS's percent_dense.
-        log_scales = torch.full((1, 3), math.log(0.01 * float(np.linalg.norm(hi - lo))))
+        log_scales = torch.full((1, 3), math.log(lone_scale))
     quats = torch.zeros(num, 4)
     quats[:, 0] = 1.0
     opacity_logits = torch.full((num, 1), math.log(init_opacity / (1.0 - init_opacity)))

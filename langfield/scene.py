@@ -179,6 +179,24 @@ class Scene:
         path = self.root / "depths" / f"{self.views[self._position(name)].name}.npy"
         return path if path.is_file() else None
 
+    def object_mask(self, name: str | int) -> np.ndarray | None:
+        """[H, W] bool `masks/<name>.png` (non-zero = object) at working resolution, or None.
+
+        The DTU protocol scores test views with the object alone (masked PSNR / SSIM, FORMAT.md).
+        """
+        i = self._position(name)
+        path = self.root / "masks" / f"{self.views[i].name}.png"
+        if not path.is_file():
+            return None
+        mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if mask is None:
+            raise SceneError(f"{path}: cannot read object mask")
+        if mask.ndim == 3:
+            mask = (mask != 0).any(axis=2)
+        _check_map_shape(path, mask.shape, self._layout.frames[i].camera)
+        inside = (mask != 0).astype(np.float32)
+        return self._align(i, inside, cv2.INTER_AREA, cv2.BORDER_CONSTANT) >= 0.5
+
     def segmentations(self, name: str | int) -> dict[str, np.ndarray]:
         """{phrase: [H, W] bool} from `segmentations/<name>/<phrase>.png` (non-zero = inside)."""
         i = self._position(name)
@@ -231,6 +249,7 @@ class Scene:
             self._read_image(i)
         self.depth(i)
         self.segmentations(i)
+        self.object_mask(i)
         paths = self.feature_paths(i)
         if paths is not None:
             cam = self.views[i].camera

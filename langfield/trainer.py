@@ -32,15 +32,27 @@ from encoders.autoencoder import (
 )
 from encoders.cache import read_feature_cache
 from langfield import gaussians as G
+from langfield.camera import Camera
 from langfield.depth_loss import LAMBDA_SA, LADTarget, depth_loss
-from langfield.field import LanguageField, color_field_spec
+from langfield.field import LanguageField, Render, color_field_spec
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
+from langfield.initialisation import INIT_METHODS, start_points
 from langfield.language import LANGUAGE_CHANNELS, N_LEVELS, LanguageHeads, language_loss
 from langfield.lop import LOP_GAMMA, LOP_INTERVAL, LOP_TAU, lop_prune
 from langfield.raster import resolve_backend
+from langfield.regularisers import (
+    anisotropy_loss,
+    baseline_for,
+    depth_smoothness,
+    drop_compensation,
+    shifted_camera,
+    virtual_view_warp,
+    z_depth,
+)
 from langfield.scene import Scene
 from langfield.strategy import DensifyStrategy, remove
+from langfield.virtual_views import sample_virtual_cameras
 from querying.metrics import psnr, ssim_map
 
 
@@ -54,6 +66,10 @@ class TrainConfig:
 
     iterations: int = 6000
     seed: int = 0
+    # Where the Gaussians start (langfield.initialisation): plane-sweep stereo on the training views,
+    # COLMAP's sparse SIFT points, the depth prior aligned to the dense points, or random in the bounds.
+    init: Literal["dense", "sfm", "depth", "random"] = "dense"
+    init_fill: float = 0.1  # random points added, as a fraction of the photo points
     backend: str = "auto"
     num_gaussians: int | None = None
     max_gaussians: int | None = None
@@ -95,6 +111,20 @@ class TrainConfig:
     # views leave most of the random start in free space, and those floaters carry wrong colours and
     # latents into new views; see the README's "Measured here" for the sweep behind the default.
     lambda_opacity: float = 0.03
+    # Sparse-view regularisers (langfield.regularisers); 0 turns each off.
+    drop_gamma: float = 0.0  # Gaussian dropout: rate gamma t / T (DropGaussian)
+    lambda_virtual: float = 0.0  # virtual-view consistency weight (Binocular-guided 3DGS)
+    virtual_baseline: float = 0.05  # its sideways shift, as a fraction of the median rendered depth
+    virtual_start: int = 0  # first iteration of the virtual-view term
+    lambda_smooth: float = 0.0  # edge-aware smoothness of the rendered depth
+    lambda_anisotropy: float = 0.0  # penalty on max/min scale above anisotropy_ratio
+    anisotropy_ratio: float = 10.0
+    # Pseudo views: an ONNX image refiner folder (encoders.onnx_refiner) cleans renders of virtual cameras
+    # between and around the training ones (langfield.virtual_views), used as confidence-weighted targets.
+    refiner: str | None = None
+    lambda_refiner: float = 0.5
+    refiner_every: int = 10
+    refiner_start: int = 500
     lop: bool = True  # language-guided outlier pruning; needs the language field
     lop_every: int = LOP_INTERVAL
     lop_gamma: int = LOP_GAMMA
@@ -110,10 +140,15 @@ CONFIG_FLAGS = {
     "seed": "--seed",
     "backend": "--backend",
     "num_gaussians": "--num-gaussians",
+    "init": "--init",
     "bounds": "--bounds",
     "language_features": "--language-features",
     "language_grid_scale": "--language-grid-scale",
     "lambda_opacity": "--lambda-opacity",
+    "drop_gamma": "--drop-gamma",
+    "lambda_virtual": "--lambda-virtual",
+    "lambda_anisotropy": "--lambda-anisotropy",
+    "refiner": "--refiner",
 }
 
 
@@ -144,6 +179,9 @@ def check_config(cfg: TrainConfig) -> None:
     whole("seed", 0)
     if cfg.backend not in ("auto", "torch", "cpu"):
         fail("backend", "'auto', 'torch' or 'cpu'")
+    if cfg.init not in INIT_METHODS:
+        fail("init", " or ".join(repr(m) for m in INIT_METHODS))
+    number("init_fill", 0.0, 10.0)
     whole("num_gaussians", 1, optional=True)
     whole("max_gaussians", 1, optional=True)
     if cfg.log2_table_size is not None and not (
@@ -174,6 +212,18 @@ def check_config(cfg: TrainConfig) -> None:
     number("lambda_dssim", 0.0, 1.0)
     for name in ("lambda_language", "lambda_depth", "lambda_sa", "lambda_opacity"):
         number(name, 0.0)
+    number("drop_gamma", 0.0, 0.9)
+    number("lambda_virtual", 0.0)
+    number("virtual_baseline", 0.0, 1.0, open_low=True)
+    whole("virtual_start", 0)
+    number("lambda_smooth", 0.0)
+    number("lambda_anisotropy", 0.0)
+    number("anisotropy_ratio", 1.0)
+    if cfg.refiner is not None and not isinstance(cfg.refiner, str):
+        fail("refiner", "a model folder (a string) or None")
+    number("lambda_refiner", 0.0)
+    whole("refiner_every", 1)
+    whole("refiner_start", 0)
     whole("lop_every", 0)
     whole("lop_gamma", 1)
     number("lop_tau", 0.0, 1.0, open_low=True)
@@ -340,7 +390,21 @@ def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None 
     train_cams = scene.cameras("train")
     pixels = max(c.width * c.height for c in train_cams)  # of one image
     n = cfg.num_gaussians or G.num_gaussians_for_scene(bounds, pixels, len(train_cams))
-    splats = G.init_gaussians(bounds, n, seed=cfg.seed)
+    start = start_points(
+        cfg.init,
+        train_cams,
+        [scene.image(c.name) for c in train_cams],
+        bounds,
+        n,
+        seed=cfg.seed,
+        fill=cfg.init_fill,
+        priors=[scene.depth(c.name) for c in train_cams] if cfg.init == "depth" else None,
+        depth_kind=scene.depth_kind,
+    )
+    n = len(start.points)
+    splats = G.gaussians_at(
+        torch.from_numpy(start.points), lone_scale=0.01 * float(np.linalg.norm(bounds[1] - bounds[0]))
+    )
     grid = HashGridConfig.for_scene(num_points=n, image_pixels=pixels)
     if cfg.log2_table_size is not None:
         grid = replace(grid, log2_table_size=cfg.log2_table_size)
@@ -395,6 +459,7 @@ def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None 
         "test_views": scene.names("test"),
         "background": background,
         "num_gaussians_init": n,
+        "init": start.stats,
         "color_field": color_field_spec(grid, center, half_extent, cfg.color_hidden, cfg.color_freqs),
         "language": language_meta,
     }
@@ -466,6 +531,11 @@ def train(
     """
     cfg = cfg or TrainConfig()
     check_inputs(scene, cfg, progress=progress)
+    refiner = None
+    if cfg.refiner is not None:  # loaded before any work, so a bad model folder stops training at once
+        from encoders.onnx_refiner import OnnxImageRefiner
+
+        refiner = OnnxImageRefiner(cfg.refiner)
     train_names = scene.names("train")
     targets = language_targets(scene, cfg, progress=progress)
     depths = depth_targets(scene, cfg, targets)
@@ -490,6 +560,7 @@ def train(
     cameras = {name: scene.camera(name) for name in train_names}
     images = {name: torch.from_numpy(scene.image(name)) for name in train_names}
     rng = np.random.default_rng(cfg.seed)
+    drop_generator = torch.Generator().manual_seed(cfg.seed)
     order: list[str] = []
     train_seconds = 0.0
     bar = tqdm(total=cfg.iterations, disable=not progress, desc="train", dynamic_ncols=True, leave=False)
@@ -502,8 +573,30 @@ def train(
         frac = step / max(cfg.iterations - 1, 1)
         optimizers["means"].param_groups[0]["lr"] = means_lr0 * math.exp(math.log(0.01) * frac)
 
-        out = field.render(cameras[name], backend=cfg.backend, hard_depth=depths is not None)
+        keep = None
+        if cfg.drop_gamma > 0:
+            rate = cfg.drop_gamma * step / max(cfg.iterations, 1)
+            keep = drop_compensation(field.num_gaussians, rate, drop_generator)
+        out = field.render(
+            cameras[name], backend=cfg.backend, hard_depth=depths is not None, opacity_scale=keep
+        )
         loss = color_loss(out.rgb, images[name], cfg.lambda_dssim)
+        if cfg.lambda_virtual > 0 and step >= cfg.virtual_start:
+            loss = loss + cfg.lambda_virtual * _virtual_view_loss(
+                field, cameras[name], images[name], out, keep, cfg, rng
+            )
+        pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0
+        if refiner is not None and pseudo_step:
+            pseudo = _pseudo_view_loss(field, refiner, list(cameras.values()), cfg, rng)
+            loss = loss + cfg.lambda_refiner * pseudo
+        if cfg.lambda_smooth > 0:
+            covered = out.alpha.detach() > 0.5
+            depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cameras[name])
+            loss = loss + cfg.lambda_smooth * depth_smoothness(depth_z, images[name], covered)
+        if cfg.lambda_anisotropy > 0:
+            loss = loss + cfg.lambda_anisotropy * anisotropy_loss(
+                field.splats["log_scales"], cfg.anisotropy_ratio
+            )
         if targets is not None:
             loss = loss + cfg.lambda_language * language_loss(
                 out.latents, targets.latents[name], targets.valid[name]
@@ -554,6 +647,47 @@ def train(
     if callback is not None:
         callback(cfg.iterations, train_seconds, field)
     return field
+
+
+def _virtual_view_loss(
+    field: LanguageField,
+    cam: Camera,
+    image: Tensor,
+    out: Render,
+    keep: Tensor | None,
+    cfg: TrainConfig,
+    rng: np.random.Generator,
+) -> Tensor:
+    """Binocular consistency (Han et al. 2024): the training view's depth must warp a sideways-shifted
+    render onto the training image. L1 + D-SSIM over the pixels the field covers and the warp reaches."""
+    covered = out.alpha.detach() > 0.5
+    depth = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
+    baseline = baseline_for(depth.detach(), covered, cfg.virtual_baseline, rng)
+    if baseline == 0.0:
+        return out.rgb.sum() * 0.0
+    shifted = field.render(
+        shifted_camera(cam, baseline), backend=cfg.backend, language=False, opacity_scale=keep
+    )
+    warped, valid = virtual_view_warp(shifted.rgb, depth, cam, baseline)
+    mask = (valid & covered).float()
+    if float(mask.sum()) < 1:
+        return out.rgb.sum() * 0.0
+    l1 = ((warped - image).abs().mean(-1) * mask).sum() / mask.sum()
+    d_ssim = ((1.0 - ssim_map(warped, image)[0].mean(0)) * mask).sum() / mask.sum()
+    return (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * d_ssim
+
+
+def _pseudo_view_loss(
+    field: LanguageField, refiner: Any, cameras: list[Camera], cfg: TrainConfig, rng: np.random.Generator
+) -> Tensor:
+    """Renders a virtual camera, lets the refiner clean the render, and returns the confidence-weighted
+    L1 to the cleaned image (a fixed target: no gradient flows through the refiner)."""
+    cam = sample_virtual_cameras(cameras, 1, rng)[0]
+    out = field.render(cam, backend=cfg.backend, language=False)
+    cleaned, confidence = refiner.refine(out.rgb.detach().clamp(0, 1).numpy())
+    target = torch.from_numpy(np.ascontiguousarray(cleaned))
+    weight = torch.from_numpy(np.ascontiguousarray(confidence))[..., None]
+    return (weight * (out.rgb - target).abs()).mean()
 
 
 @torch.no_grad()

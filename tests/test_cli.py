@@ -21,6 +21,8 @@ W, H = 64, 48
 REPORT_KEYS = {
     "PSNR",
     "SSIM",
+    "masked_PSNR",
+    "masked_SSIM",
     "mIoU",
     "mAcc",
     "train_seconds",

@@ -8,5 +8,7 @@ onnxscript); the runtime needs only onnxruntime.
 
 - :func:`encoders.export.clip.export_clip`: OpenCLIP image and text towers;
 - :func:`encoders.export.sam.export_sam`: SAM's image encoder and mask decoder;
-- :func:`encoders.export.depth.export_depth`: a transformers DPT or Depth Anything model.
+- :func:`encoders.export.depth.export_depth`: a transformers DPT or Depth Anything model;
+- :func:`encoders.export.refiner.export_refiner`: any image-to-image ``torch.nn.Module`` (a refiner of
+  rendered views; no weights ship with langfield).
 """

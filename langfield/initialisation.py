@@ -1,0 +1,473 @@
+"""Start points for the Gaussians from the training photos themselves (no network).
+
+Three views leave most of a random start in free space, and the geometry between the views never
+forms from it. With the poses known, the photos alone give surface points:
+
+- ``dense`` (the default): plane-sweep stereo on every training view against the others (Collins 1996;
+  the fronto-parallel sweep with a ZNCC cost that COLMAP's and MVSNet's pipelines start from):
+  for each depth hypothesis the other views are warped onto the reference view by the plane's
+  homography, the best-scoring depth is kept per pixel, refined to sub-plane precision, and kept only
+  where it is distinct, textured, and agrees with another view's depth map (geometric consistency,
+  as in COLMAP's fusion). CoR-GS starts from COLMAP's dense MVS of the training views for the same
+  reason; this is its classical core, with OpenCV warps and box filters on the CPU.
+- ``sfm``: SIFT features matched across the training views and triangulated with the known poses by
+  pycolmap (COLMAP's extraction, exhaustive matching and ``triangulate_points``), as FSGS and CoR-GS
+  do; sparse on three views (about a hundred points on LLFF fern).
+- ``depth``: the scene's depth prior of each training view, aligned per view by scale and shift to
+  the dense points it sees, and back-projected.
+- ``random``: uniform in the bounds (DNGaussian), also the fallback when a method finds too few
+  points, with a warning.
+
+Every method adds a sparse random fill inside the bounds (``fill`` of the points' count), so regions
+no photo pair resolves can still be claimed by densification.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from langfield.camera import Camera
+
+__all__ = [
+    "INIT_METHODS",
+    "PlaneSweepConfig",
+    "StartPoints",
+    "dense_points",
+    "depth_prior_points",
+    "plane_sweep",
+    "random_points",
+    "sfm_points",
+]
+
+InitMethod = Literal["dense", "sfm", "depth", "random"]
+INIT_METHODS: tuple[str, ...] = ("dense", "sfm", "depth", "random")
+# Below this many photo points a start is not trusted: random instead, with a warning.
+MIN_POINTS = 200
+
+
+@dataclass(frozen=True)
+class StartPoints:
+    """Where the Gaussians start.
+
+    Attributes:
+        points: [N, 3] float32 world positions (photo points first, then the random fill).
+        colors: [N, 3] float32 colours in [0, 1] from the images (grey for the random fill).
+        method: the method that produced the photo points ("random" after a fallback).
+        stats: what the report records (counts per stage, seconds).
+    """
+
+    points: np.ndarray
+    colors: np.ndarray
+    method: str
+    stats: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PlaneSweepConfig:
+    """Settings of :func:`plane_sweep` and :func:`dense_points`.
+
+    Attributes:
+        planes: depth hypotheses, uniform in inverse depth between near and far.
+        window: ZNCC window in pixels at 400 pixels of width (scaled with the image, odd, >= 5).
+        min_score: lowest mean ZNCC over the source views to keep a pixel.
+        min_texture: lowest standard deviation of the reference's grey values in the window (0-1 scale):
+            flat patches match every depth.
+        consistency: largest relative depth difference to another view's depth map.
+        reprojection: largest reprojection error (pixels) of that round trip.
+        max_points: cap on the fused points (a voxel grid thins them evenly to it).
+    """
+
+    planes: int = 384
+    window: int = 7
+    min_score: float = 0.7
+    min_texture: float = 0.01
+    consistency: float = 0.03
+    reprojection: float = 1.0
+    max_points: int = 60000
+
+
+# ---------------------------------------------------------------- camera helpers (OpenCV convention)
+
+
+def _cv_pose(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(R [3, 3], t [3]) world -> camera in the OpenCV convention (x right, y down, z forward)."""
+    w2c = cam.world_to_camera(dtype=__import__("torch").float64).numpy()
+    return w2c[:3, :3], w2c[:3, 3]
+
+
+def _k(cam: Camera) -> np.ndarray:
+    return np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+
+
+def _project(points: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates [N, 2] and depths z [N] of world points in ``cam``."""
+    r, t = _cv_pose(cam)
+    p = points @ r.T + t
+    z = p[:, 2]
+    zs = np.where(np.abs(z) < 1e-12, 1e-12, z)
+    uv = np.stack([cam.fx * p[:, 0] / zs + cam.cx, cam.fy * p[:, 1] / zs + cam.cy], axis=-1)
+    return uv, z
+
+
+def _backproject(depth: np.ndarray, cam: Camera, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """World points [N, 3] of pixel centres (rows, cols) at z-depth ``depth[rows, cols]``."""
+    r, t = _cv_pose(cam)
+    z = depth[rows, cols]
+    x = (cols + 0.5 - cam.cx) / cam.fx * z
+    y = (rows + 0.5 - cam.cy) / cam.fy * z
+    cam_pts = np.stack([x, y, z], axis=-1)
+    return (cam_pts - t) @ r  # R^T (p - t)
+
+
+def depth_range(cam: Camera, bounds: np.ndarray) -> tuple[float, float]:
+    """(near, far) z-depths of the box ``bounds`` [2, 3] seen from ``cam`` (near kept positive)."""
+    corners = np.array(
+        [[bounds[i][0], bounds[j][1], bounds[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    )
+    _, z = _project(corners, cam)
+    far = float(z.max())
+    if far <= 0:
+        raise ValueError(f"camera {cam.name!r}: the scene bounds lie behind it")
+    near = max(float(z.min()), far * 0.02)
+    return near, far
+
+
+# ---------------------------------------------------------------- plane sweep
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(np.ascontiguousarray(image, dtype=np.float32), cv2.COLOR_RGB2GRAY)
+
+
+def _box(x: np.ndarray, size: int) -> np.ndarray:
+    return cv2.blur(x, (size, size), borderType=cv2.BORDER_REFLECT_101)
+
+
+def plane_sweep(
+    ref: Camera,
+    ref_image: np.ndarray,
+    sources: list[tuple[Camera, np.ndarray]],
+    near: float,
+    far: float,
+    cfg: PlaneSweepConfig = PlaneSweepConfig(),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth map of ``ref`` by a fronto-parallel plane sweep against ``sources``.
+
+    For each of ``cfg.planes`` depths d (uniform in 1/d), each source image is warped onto the
+    reference by the homography of the plane z = d, H = K_s (R + t n^T / d) K_r^-1 (n = (0, 0, 1),
+    [R | t] the reference-to-source pose), and scored by zero-normalised cross-correlation over a
+    window; the score of a depth is the mean over the sources that see the pixel. The best depth is
+    refined by a parabola through its neighbours' scores (in 1/d).
+
+    Args:
+        ref: the reference camera; ``ref_image`` its [H, W, 3] image in [0, 1].
+        sources: (camera, image) of the other views.
+        near, far: z-depth range to sweep, 0 < near < far.
+        cfg: settings.
+
+    Returns:
+        ``(depth [H, W], score [H, W])``: z-depth (OpenCV: along the viewing axis) and the best mean
+        ZNCC in [-1, 1]; score -1 where no source sees the pixel at any depth or the patch is flat.
+    """
+    if not 0 < near < far or not sources:
+        raise ValueError(f"plane_sweep: need 0 < near < far and a source view, got {near}, {far}")
+    h, w = ref.height, ref.width
+    size = max(5, 2 * round(cfg.window * w / 400 / 2) + 1)  # 3x3 windows match too much noise
+    g_ref = _gray(ref_image)
+    mu_r = _box(g_ref, size)
+    var_r = np.maximum(_box(g_ref * g_ref, size) - mu_r * mu_r, 0.0)
+    flat = np.sqrt(var_r) < cfg.min_texture
+    k_ref_inv = np.linalg.inv(_k(ref))
+    r_ref, t_ref = _cv_pose(ref)
+    inv_depths = np.linspace(1.0 / near, 1.0 / far, cfg.planes)
+    scores = np.full((cfg.planes, h, w), -1.0, dtype=np.float32)
+    prepared = []
+    for cam, image in sources:
+        r_src, t_src = _cv_pose(cam)
+        rel_r = r_src @ r_ref.T
+        rel_t = t_src - rel_r @ t_ref
+        plane_part = _k(cam) @ np.outer(rel_t, [0.0, 0.0, 1.0]) @ k_ref_inv
+        prepared.append((_k(cam) @ rel_r @ k_ref_inv, plane_part, _gray(image), cam))
+    # Pixel centres: OpenCV's warp maps integer pixel coordinates, so shift by the half pixel.
+    shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    unshift = np.linalg.inv(shift)
+    for i, inv_d in enumerate(inv_depths):
+        total = np.zeros((h, w), np.float32)
+        count = np.zeros((h, w), np.float32)
+        for rot_part, trans_part, g_src, cam in prepared:
+            homography = unshift @ (rot_part + trans_part * inv_d) @ shift
+            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            warped = cv2.warpPerspective(g_src, homography, (w, h), flags=flags, borderValue=0.0)
+            seen = cv2.warpPerspective(
+                np.ones((cam.height, cam.width), np.float32), homography, (w, h), flags=flags, borderValue=0.0
+            )
+            mu_s = _box(warped, size)
+            var_s = np.maximum(_box(warped * warped, size) - mu_s * mu_s, 0.0)
+            cov = _box(g_ref * warped, size) - mu_r * mu_s
+            zncc = cov / np.sqrt(var_r * var_s + 1e-10)
+            valid = (_box(seen, size) > 0.999) & (var_s > cfg.min_texture**2)
+            total += np.where(valid, zncc, 0.0)
+            count += valid
+        scores[i] = np.where(count > 0, total / np.maximum(count, 1.0), -1.0)
+    best = scores.argmax(axis=0)
+    best_score = np.take_along_axis(scores, best[None], 0)[0]
+    # Sub-plane refinement: the vertex of the parabola through the best score and its neighbours.
+    lo = np.clip(best - 1, 0, cfg.planes - 1)
+    hi = np.clip(best + 1, 0, cfg.planes - 1)
+    s_lo = np.take_along_axis(scores, lo[None], 0)[0]
+    s_hi = np.take_along_axis(scores, hi[None], 0)[0]
+    denom = s_lo - 2 * best_score + s_hi
+    interior = (best > 0) & (best < cfg.planes - 1) & (denom < -1e-6)
+    offset = np.where(interior, 0.5 * (s_lo - s_hi) / np.where(interior, denom, -1.0), 0.0)
+    step = inv_depths[1] - inv_depths[0] if cfg.planes > 1 else 0.0
+    inv = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
+    depth = (1.0 / inv).astype(np.float32)
+    # The end planes are the range's edges, not surfaces found there.
+    best_score = np.where(flat | ~interior, -1.0, best_score).astype(np.float32)
+    return depth, best_score
+
+
+def _consistent(
+    depth: np.ndarray, cam: Camera, other_depth: np.ndarray, other_valid: np.ndarray, other: Camera,
+    cfg: PlaneSweepConfig,
+) -> np.ndarray:  # fmt: skip
+    """[H, W] bool: pixels whose point lands on ``other``'s depth map at the same depth (relative
+    difference below ``cfg.consistency``) and projects back within ``cfg.reprojection`` pixels."""
+    h, w = depth.shape
+    rows, cols = np.mgrid[0:h, 0:w]
+    rows, cols = rows.ravel(), cols.ravel()
+    pts = _backproject(depth, cam, rows, cols)
+    uv, z = _project(pts, other)
+    c, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    inside = (z > 0) & (c >= 0) & (c < other.width) & (r >= 0) & (r < other.height)
+    ok = np.zeros(h * w, dtype=bool)
+    idx = np.nonzero(inside)[0]
+    ci, ri = c[idx], r[idx]
+    d_other = other_depth[ri, ci]
+    good = other_valid[ri, ci] & (np.abs(d_other - z[idx]) <= cfg.consistency * z[idx])
+    idx, ci, ri = idx[good], ci[good], ri[good]
+    back = _backproject(other_depth, other, ri, ci)
+    uv_back, _ = _project(back, cam)
+    err = np.hypot(uv_back[:, 0] - (cols[idx] + 0.5), uv_back[:, 1] - (rows[idx] + 0.5))
+    ok[idx[err <= cfg.reprojection + math.sqrt(0.5)]] = True
+    return ok.reshape(h, w)
+
+
+def dense_points(
+    cameras: list[Camera],
+    images: list[np.ndarray],
+    bounds: np.ndarray,
+    cfg: PlaneSweepConfig = PlaneSweepConfig(),
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Surface points of the training views by plane sweep and geometric consistency.
+
+    Args:
+        cameras, images: the training views ([H, W, 3] images in [0, 1]); at least two.
+        bounds: [2, 3] box the scene lies in (the sweep's depth range, and points outside are dropped).
+        cfg: settings.
+
+    Returns:
+        ``(points [N, 3], colors [N, 3], stats)``.
+    """
+    if len(cameras) < 2:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), {"reason": "one view"}
+    depths, valid = [], []
+    for i, cam in enumerate(cameras):
+        near, far = depth_range(cam, bounds)
+        sources = [(c, im) for j, (c, im) in enumerate(zip(cameras, images, strict=True)) if j != i]
+        depth, score = plane_sweep(cam, images[i], sources, near, far, cfg)
+        depths.append(depth)
+        valid.append(score >= cfg.min_score)
+    points, colors = [], []
+    kept = []
+    for i, cam in enumerate(cameras):
+        agree = np.zeros_like(valid[i])
+        for j, other in enumerate(cameras):
+            if j != i:
+                agree |= _consistent(depths[i], cam, depths[j], valid[j], other, cfg)
+        keep = valid[i] & agree
+        kept.append(int(keep.sum()))
+        rows, cols = np.nonzero(keep)
+        points.append(_backproject(depths[i], cam, rows, cols))
+        colors.append(images[i][rows, cols])
+    pts = np.concatenate(points).astype(np.float32)
+    cols_ = np.concatenate(colors).astype(np.float32)
+    pts, cols_ = _thin(*_inside(pts, cols_, bounds), cfg.max_points)
+    stats = {
+        "matched_per_view": [int(v.sum()) for v in valid],
+        "consistent_per_view": kept,
+        "points": len(pts),
+    }
+    return pts, cols_, stats
+
+
+def _thin(points: np.ndarray, colors: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``max_points``, evenly: one point per cell of the finest voxel grid that keeps no more
+    cells than that (a bisection on the cell size), so dense regions lose points and sparse ones not."""
+    if len(points) <= max_points:
+        return points, colors
+    lo = points.min(axis=0)
+    extent = float((points.max(axis=0) - lo).max()) or 1.0
+    fine, coarse = extent / 1e5, extent  # cells of these sizes keep too many / too few points
+    first = np.arange(1)
+    for _ in range(40):
+        size = math.sqrt(fine * coarse)
+        keys = np.floor((points - lo) / size).astype(np.int64)
+        _, index = np.unique(keys, axis=0, return_index=True)
+        if len(index) > max_points:
+            fine = size
+        else:
+            coarse, first = size, index
+        if coarse / fine < 1.02:
+            break
+    first = np.sort(first)
+    return points[first], colors[first]
+
+
+def random_points(bounds: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """[n, 3] float32 uniform in the box, seeded (the points of ``gaussians.init_gaussians``)."""
+    import torch
+
+    lo = torch.from_numpy(np.asarray(bounds[0], dtype=np.float64)).float()
+    hi = torch.from_numpy(np.asarray(bounds[1], dtype=np.float64)).float()
+    return (lo + torch.rand(n, 3, generator=torch.Generator().manual_seed(int(seed))) * (hi - lo)).numpy()
+
+
+def start_points(
+    method: InitMethod,
+    cameras: list[Camera],
+    images: list[np.ndarray],
+    bounds: np.ndarray,
+    num: int,
+    *,
+    seed: int = 0,
+    fill: float = 0.1,
+    priors: list[np.ndarray] | None = None,
+    depth_kind: str | None = None,
+    sweep: PlaneSweepConfig = PlaneSweepConfig(),
+) -> StartPoints:
+    """The start of training: ``num`` points by ``method`` (module docstring), the last ``fill`` of
+    them random in ``bounds``.
+
+    Args:
+        method: "dense", "sfm", "depth" or "random".
+        cameras, images: the training views.
+        bounds: [2, 3] scene box.
+        num: the number of Gaussians to start with (photo points are thinned to ``num / (1 + fill)``).
+        seed: seed of the random points.
+        fill: random points as a fraction of the photo points.
+        priors, depth_kind: the training views' depth priors (``method="depth"``).
+        sweep: plane-sweep settings.
+
+    Returns:
+        :class:`StartPoints`; ``method`` is "random" when the photos gave fewer than MIN_POINTS points
+        (a warning says so).
+    """
+    if method not in INIT_METHODS:
+        raise ValueError(f"init must be one of {', '.join(INIT_METHODS)}, got {method!r}")
+    bounds = np.asarray(bounds, dtype=np.float64)
+    t0 = time.perf_counter()
+    stats: dict = {"method": method}
+    photo = np.zeros((0, 3), np.float32)
+    colors = np.zeros((0, 3), np.float32)
+    wanted = max(1, round(num / (1.0 + fill)))
+    if method in ("dense", "depth"):
+        photo, colors, stats["dense"] = dense_points(
+            cameras, images, bounds, replace(sweep, max_points=wanted)
+        )
+    if method == "sfm":
+        photo, colors, stats["sfm"] = sfm_points(cameras, images)
+        photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
+    if method == "depth":
+        if priors is None or depth_kind is None:
+            raise ValueError("init 'depth' needs every training view's depth prior (depths/ and depth_kind)")
+        photo, colors, stats["depth"] = depth_prior_points(cameras, images, priors, depth_kind, photo)
+        photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
+    used = method
+    if method != "random" and len(photo) < MIN_POINTS:
+        warnings.warn(
+            f"init {method!r}: the training views gave {len(photo)} points (fewer than {MIN_POINTS}); "
+            "starting from random points instead",
+            stacklevel=2,
+        )
+        used, photo, colors = "random", photo[:0], colors[:0]
+    # With photo points to spare the start has exactly `num` Gaussians; with fewer, `fill` of them more.
+    if used == "random":
+        n_random = num
+    elif len(photo) >= wanted:
+        n_random = num - len(photo)
+    else:
+        n_random = round(fill * len(photo))
+    rand = random_points(bounds, n_random, seed)
+    points = np.concatenate([photo, rand]).astype(np.float32)
+    colors = np.concatenate([colors, np.full((n_random, 3), 0.5, np.float32)]).astype(np.float32)
+    stats.update(used=used, photo_points=len(photo), random_points=n_random, seconds=time.perf_counter() - t0)
+    return StartPoints(points, colors, used, stats)
+
+
+def _inside(points: np.ndarray, colors: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    keep = np.all((points >= bounds[0]) & (points <= bounds[1]), axis=1)
+    return points[keep], colors[keep]
+
+
+def depth_prior_points(
+    cameras: list[Camera],
+    images: list[np.ndarray],
+    priors: list[np.ndarray],
+    depth_kind: str,
+    anchors: np.ndarray,
+    min_anchors: int = 50,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Every pixel of each training view's depth prior, aligned to ``anchors`` and back-projected.
+
+    A monocular prior is relative: per view, the scale and shift that map it to the anchors' depths
+    (z for ``depth``, 1/z for ``disparity``) are fitted by least squares, twice, the second time
+    without the anchors whose residual is above three times the median; views seeing fewer than
+    ``min_anchors`` anchors are skipped.
+
+    Returns:
+        ``(points [N, 3], colors [N, 3], stats)`` with the per-view fit in ``stats``.
+    """
+    points, colors, fits = [], [], []
+    for cam, image, prior in zip(cameras, images, priors, strict=True):
+        uv, z = _project(anchors.astype(np.float64), cam)
+        c, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (c >= 0) & (c < cam.width) & (r >= 0) & (r < cam.height)
+        if seen.sum() < min_anchors:
+            fits.append(None)
+            continue
+        x = prior[r[seen], c[seen]].astype(np.float64)
+        y = 1.0 / z[seen] if depth_kind == "disparity" else z[seen]
+        keep = np.ones(len(x), dtype=bool)
+        for _ in range(2):
+            a, b = np.polyfit(x[keep], y[keep], 1)
+            residual = np.abs(a * x + b - y)
+            keep = residual <= 3 * np.median(residual[keep]) + 1e-12
+        target = a * prior.astype(np.float64) + b
+        depth = 1.0 / np.where(target > 1e-12, target, np.nan) if depth_kind == "disparity" else target
+        valid = np.isfinite(depth) & (depth > 0)
+        rows, cols = np.nonzero(valid)
+        points.append(_backproject(depth, cam, rows, cols))
+        colors.append(image[rows, cols])
+        fits.append({"scale": float(a), "shift": float(b), "anchors": int(keep.sum())})
+    if not points:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), {"fits": fits}
+    return (
+        np.concatenate(points).astype(np.float32),
+        np.concatenate(colors).astype(np.float32),
+        {"fits": fits},
+    )
+
+
+def sfm_points(cameras: list[Camera], images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Sparse SIFT points triangulated with the known poses (pycolmap); see :mod:`langfield.sfm`."""
+    from langfield.sfm import sfm_points as triangulate
+
+    return triangulate(cameras, images)

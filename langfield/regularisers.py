@@ -1,0 +1,145 @@
+"""Regularisers for training from three views, each a switch of :class:`langfield.trainer.TrainConfig`.
+
+- Gaussian dropout (DropGaussian, Park et al., CVPR 2025): each iteration a random fraction
+  r_t = gamma t / T of the Gaussians is left out of the render and the opacities of the rest are
+  scaled by 1 / (1 - r_t); every Gaussian renders at test time. Gaussians hidden behind others then
+  get gradients and must explain the images too, which three views otherwise never ask of them.
+- Virtual-view consistency (Binocular-guided 3DGS, Han et al., NeurIPS 2024, sec. 3.2): the training
+  camera is shifted sideways by a baseline b, the shifted view is rendered, and warped back to the
+  training view with the disparity f b / z of the training view's rendered depth; the warp must give
+  the training image (L1 + D-SSIM). A wrong depth warps the wrong pixels, so the loss corrects the
+  geometry between the views from the photos alone.
+- Edge-aware depth smoothness (Godard et al., CVPR 2017, eq. 3, as monocular depth training uses it):
+  the rendered depth, divided by its mean so the term does not depend on the scene's scale, should
+  change little where the image does not; textureless surfaces (a white table) then take their depth
+  from the textured edges around them instead of being explained by floaters anywhere on the ray.
+- Anisotropy penalty: needle-thin Gaussians fit a training view with a streak that crosses every other
+  view (the Blender lego far views); max scale / min scale above ``ratio`` is penalised
+  (PhysGaussian's anisotropy regulariser, Xie et al., CVPR 2024, eq. 9).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from langfield.camera import Camera
+
+__all__ = [
+    "anisotropy_loss",
+    "depth_smoothness",
+    "drop_compensation",
+    "shifted_camera",
+    "virtual_view_warp",
+]
+
+
+def drop_compensation(n: int, rate: float, generator: torch.Generator) -> Tensor:
+    """[n] opacity factors of Gaussian dropout: 0 for the dropped, 1 / (1 - rate) for the rest.
+
+    Args:
+        n: number of Gaussians.
+        rate: fraction dropped, in [0, 1).
+        generator: the random stream (seeded by the trainer).
+    """
+    if not 0.0 <= rate < 1.0:
+        raise ValueError(f"drop rate must be in [0, 1), got {rate}")
+    keep = torch.rand(n, generator=generator) >= rate
+    return keep.float() / (1.0 - rate)
+
+
+def shifted_camera(cam: Camera, baseline: float) -> Camera:
+    """The camera moved by ``baseline`` along its own x axis (to its right for baseline > 0)."""
+    c2w = cam.c2w.copy()
+    c2w[:3, 3] = c2w[:3, 3] + baseline * c2w[:3, 0]
+    return replace(cam, name=f"{cam.name}+{baseline:.3g}", c2w=c2w)
+
+
+def z_depth(distance: Tensor, cam: Camera) -> Tensor:
+    """[H, W] z-depth (along the viewing axis) from the distance to the camera centre [H, W]."""
+    v, u = torch.meshgrid(
+        torch.arange(cam.height, dtype=distance.dtype) + 0.5,
+        torch.arange(cam.width, dtype=distance.dtype) + 0.5,
+        indexing="ij",
+    )
+    x, y = (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy
+    return distance / torch.sqrt(x * x + y * y + 1.0)
+
+
+def virtual_view_warp(
+    shifted_image: Tensor, depth_z: Tensor, cam: Camera, baseline: float
+) -> tuple[Tensor, Tensor]:
+    """Warps the render of :func:`shifted_camera` ``(cam, baseline)`` back onto ``cam``.
+
+    A point at z-depth z seen at column u by ``cam`` is at column u - fx b / z in the shifted view (same
+    row: the shift is along the camera's x axis), so the warp samples the shifted image there
+    (bilinear, differentiable in both the image and the depth).
+
+    Args:
+        shifted_image: [H, W, C] render of the shifted camera.
+        depth_z: [H, W] z-depth of ``cam``'s render (> 0 where valid).
+        cam: the training camera.
+        baseline: the shift used.
+
+    Returns:
+        ``(warped [H, W, C], valid [H, W] bool)``: valid where the depth is positive and the sample
+        lands inside the shifted image.
+    """
+    h, w = depth_z.shape
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=depth_z.dtype) + 0.5, torch.arange(w, dtype=depth_z.dtype) + 0.5, indexing="ij"
+    )
+    positive = depth_z > 1e-6
+    source_u = u - cam.fx * baseline / torch.where(positive, depth_z, torch.ones_like(depth_z))
+    grid = torch.stack([2.0 * source_u / w - 1.0, 2.0 * v / h - 1.0], dim=-1)[None]
+    image = shifted_image.permute(2, 0, 1)[None]
+    warped = torch.nn.functional.grid_sample(
+        image, grid, mode="bilinear", padding_mode="border", align_corners=False
+    )
+    valid = positive & (source_u >= 0.5) & (source_u <= w - 0.5)
+    return warped[0].permute(1, 2, 0), valid
+
+
+def anisotropy_loss(log_scales: Tensor, ratio: float) -> Tensor:
+    """mean over Gaussians of max(max scale / min scale, ratio) - ratio (PhysGaussian eq. 9).
+
+    Args:
+        log_scales: [N, 3] log standard deviations.
+        ratio: the largest axis ratio left free.
+    """
+    if log_scales.shape[0] == 0:
+        return log_scales.sum()
+    spread = log_scales.max(dim=1).values - log_scales.min(dim=1).values
+    return (torch.exp(spread).clamp_min(ratio) - ratio).mean()
+
+
+def baseline_for(depth_z: Tensor, valid: Tensor, fraction: float, rng: np.random.Generator) -> float:
+    """A random sideways shift of ``fraction`` times the median rendered depth, to the left or right."""
+    depths = depth_z[valid]
+    scale = float(depths.median()) if depths.numel() else 0.0
+    return float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0) * fraction * scale)
+
+
+def depth_smoothness(depth: Tensor, image: Tensor, valid: Tensor, edge_weight: float = 10.0) -> Tensor:
+    """Edge-aware depth smoothness: mean over valid neighbour pairs of |d_p - d_q| e^{-a |I_p - I_q|}.
+
+    Args:
+        depth: [H, W] rendered depth (> 0 where valid); divided by its valid mean, so scale-free.
+        image: [H, W, 3] the training image (the edges that allow a depth change).
+        valid: [H, W] bool pixels to use (covered by the field).
+        edge_weight: a in the weight e^{-a |dI|} (image gradients per channel mean, values in [0, 1]).
+    """
+    if not bool(valid.any()):
+        return depth.sum() * 0.0
+    d = depth / depth[valid].mean().detach().clamp_min(1e-8)
+    total, count = depth.new_zeros(()), 0
+    for axis in (0, 1):
+        dd = torch.diff(d, dim=axis).abs()
+        di = torch.diff(image, dim=axis).abs().mean(-1)
+        both = valid.narrow(axis, 0, valid.shape[axis] - 1) & valid.narrow(axis, 1, valid.shape[axis] - 1)
+        total = total + (dd * torch.exp(-edge_weight * di))[both].sum()
+        count += int(both.sum())
+    return total / max(count, 1)

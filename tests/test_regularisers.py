@@ -1,0 +1,162 @@
+"""Sparse-view regularisers (langfield/regularisers.py) and their use in training."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import langfield as lf
+from langfield.camera import Camera
+from langfield.regularisers import (
+    anisotropy_loss,
+    depth_smoothness,
+    drop_compensation,
+    shifted_camera,
+    virtual_view_warp,
+    z_depth,
+)
+from langfield.synthetic import make_room
+
+
+def test_dropout_drops_the_rate_and_keeps_the_expected_opacity() -> None:
+    g = torch.Generator().manual_seed(0)
+    factors = drop_compensation(100_000, 0.2, g)
+    assert (factors == 0).float().mean() == pytest.approx(0.2, abs=0.005)
+    assert torch.allclose(factors[factors > 0], torch.tensor(1.25))
+    assert factors.mean() == pytest.approx(1.0, abs=0.01)
+    assert torch.equal(drop_compensation(10, 0.0, g), torch.ones(10))
+    with pytest.raises(ValueError, match="drop rate"):
+        drop_compensation(10, 1.0, g)
+
+
+def test_shifted_camera_moves_along_its_own_x_axis() -> None:
+    cam = Camera.look_at((0.0, -3.0, 1.0), (0.0, 0.0, 1.0), width=40, height=30)
+    moved = shifted_camera(cam, 0.5)
+    np.testing.assert_allclose(moved.center - cam.center, 0.5 * cam.c2w[:3, 0])
+    np.testing.assert_allclose(moved.c2w[:3, :3], cam.c2w[:3, :3])
+
+
+def test_z_depth_of_a_plane_is_constant() -> None:
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=40, height=30)
+    v, u = torch.meshgrid(torch.arange(30) + 0.5, torch.arange(40) + 0.5, indexing="ij")
+    ray = torch.sqrt(((u - cam.cx) / cam.fx) ** 2 + ((v - cam.cy) / cam.fy) ** 2 + 1)
+    torch.testing.assert_close(z_depth(2.0 * ray, cam), torch.full((30, 40), 2.0))
+
+
+def test_the_warp_with_the_true_depth_gives_back_the_training_image() -> None:
+    """A fronto-parallel plane at z: the shifted view sees column u at u - fx b / z."""
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=64, height=16)
+    z, b = 2.0, 0.1
+    disparity = cam.fx * b / z
+    u = torch.arange(64, dtype=torch.float32) + 0.5
+    pattern = lambda x: torch.sin(x / 5.0)  # noqa: E731
+    training = pattern(u).expand(16, 64)[..., None].repeat(1, 1, 3)
+    shifted = pattern(u + disparity).expand(16, 64)[..., None].repeat(1, 1, 3)
+    warped, valid = virtual_view_warp(shifted, torch.full((16, 64), z), cam, b)
+    assert valid.sum() > 0.8 * valid.numel() and not valid[:, 0].any()  # the left edge comes from outside
+    # Bilinear sampling of sin(x / 5) errs by at most h^2 / 8 * |f"| = 1 / 200.
+    torch.testing.assert_close(warped[valid], training[valid], atol=5.1e-3, rtol=0)
+
+
+def test_the_warp_passes_gradient_to_the_depth() -> None:
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=32, height=8)
+    u = torch.arange(32, dtype=torch.float32) + 0.5
+    shifted = torch.sin(u / 3.0).expand(8, 32)[..., None].repeat(1, 1, 3)
+    depth = torch.full((8, 32), 2.0, requires_grad=True)
+    warped, valid = virtual_view_warp(shifted, depth, cam, 0.1)
+    warped[valid].sum().backward()
+    assert depth.grad is not None and depth.grad.abs().sum() > 0
+
+
+def test_anisotropy_penalises_needles_only() -> None:
+    iso = torch.zeros(5, 3)
+    needle = torch.log(torch.tensor([[1.0, 0.01, 0.01]])).requires_grad_(True)
+    assert float(anisotropy_loss(iso, 10.0)) == 0.0
+    loss = anisotropy_loss(needle, 10.0)
+    assert float(loss) == pytest.approx(90.0, rel=1e-4)
+    loss.backward()
+    assert needle.grad[0, 0] > 0 and needle.grad[0, 1] < 0  # shrink the long axis, grow the short one
+    assert float(anisotropy_loss(torch.zeros(0, 3), 10.0)) == 0.0
+
+
+def test_depth_smoothness_is_scale_free_and_allows_steps_at_image_edges() -> None:
+    image = torch.zeros(8, 8, 3)
+    image[:, 4:] = 1.0  # an edge between columns 3 and 4
+    valid = torch.ones(8, 8, dtype=torch.bool)
+    flat = torch.full((8, 8), 2.0)
+    step_at_edge = flat.clone()
+    step_at_edge[:, 4:] = 4.0
+    step_elsewhere = flat.clone()
+    step_elsewhere[:, 2:] = 4.0
+    assert float(depth_smoothness(flat, image, valid)) == 0.0
+    assert float(depth_smoothness(step_at_edge, image, valid)) < 1e-4 * float(
+        depth_smoothness(step_elsewhere, image, valid)
+    )
+    torch.testing.assert_close(
+        depth_smoothness(10 * step_elsewhere, image, valid), depth_smoothness(step_elsewhere, image, valid)
+    )
+    assert float(depth_smoothness(step_elsewhere, image, torch.zeros(8, 8, dtype=torch.bool))) == 0.0
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return lf.load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=48, height=36, n_test=1))
+
+
+def test_training_with_every_regulariser_runs_and_is_recorded(scene) -> None:
+    cfg = lf.TrainConfig(iterations=6, num_gaussians=300, init="random", drop_gamma=0.2)
+    more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1}
+    cfg = lf.TrainConfig(**{**cfg.__dict__, **more})
+    field = lf.train(scene, cfg, progress=False)
+    assert all(torch.isfinite(p).all() for p in field.splats.values())
+    recorded = field.meta["config"]
+    assert recorded["drop_gamma"] == 0.2 and recorded["lambda_virtual"] == 1.0
+    assert recorded["lambda_anisotropy"] == 0.1
+
+
+def test_dropout_changes_training_and_rendering_uses_every_gaussian(scene) -> None:
+    base = lf.TrainConfig(iterations=4, num_gaussians=300, init="random", language=False, depth=False)
+    plain = lf.train(scene, base, progress=False)
+    dropped = lf.train(scene, lf.TrainConfig(**{**base.__dict__, "drop_gamma": 0.5}), progress=False)
+    assert not torch.equal(plain.splats["means"], dropped.splats["means"])
+    cam = scene.camera(scene.names("test")[0])
+    with torch.no_grad():
+        a, b = dropped.render(cam), dropped.render(cam)
+    assert torch.equal(a.rgb, b.rgb)  # no dropout outside training
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("drop_gamma", 0.95), ("lambda_virtual", -1.0), ("anisotropy_ratio", 0.5)]
+)
+def test_bad_regulariser_settings_are_refused(key, value) -> None:
+    with pytest.raises(ValueError, match=key):
+        lf.TrainConfig(**{key: value})
+
+
+@pytest.mark.export
+def test_training_with_a_tiny_onnx_refiner_runs_end_to_end(scene, tmp_path) -> None:
+    pytest.importorskip("onnxscript", reason="needs the export extra (make test-export)")
+    from encoders.export.refiner import export_refiner
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3, padding=1))
+    folder = tmp_path / "refiner"
+    export_refiner(net, folder, confidence=True)
+    base = dict(iterations=6, num_gaussians=300, init="random", language=False, depth=False)
+    plain = lf.train(scene, lf.TrainConfig(**base), progress=False)
+    refined = lf.train(
+        scene,
+        lf.TrainConfig(**base, refiner=str(folder), refiner_start=0, refiner_every=2, lambda_refiner=1.0),
+        progress=False,
+    )
+    assert refined.meta["config"]["refiner"] == str(folder)
+    assert all(torch.isfinite(p).all() for p in refined.splats.values())
+    assert not torch.equal(plain.splats["means"], refined.splats["means"])  # the pseudo views trained it
+
+
+def test_a_bad_refiner_folder_stops_training_before_work(scene, tmp_path) -> None:
+    from encoders.manifest import ManifestError
+
+    with pytest.raises(ManifestError, match="missing"):
+        lf.train(scene, lf.TrainConfig(iterations=2, refiner=str(tmp_path / "missing")), progress=False)
