@@ -148,6 +148,7 @@ class LanguageField(nn.Module):
         hard_depth: bool = False,
         language: bool = True,
         opacity_scale: Tensor | None = None,
+        background: Tensor | None = None,
     ) -> Render:
         """Renders colour, soft depth and alpha (and optionally hard depth) from ``camera``.
 
@@ -157,6 +158,8 @@ class LanguageField(nn.Module):
             hard_depth: also render the hard depth of eq. 7.
             language: render the latents too (when the field has language).
             opacity_scale: [N] factors on the opacities (Gaussian dropout during training).
+            background: [3] colour behind the Gaussians instead of the field's (random backgrounds in
+                training).
         """
         backend = backend or self.meta.get("backend", "auto")
         means = self.splats["means"]
@@ -177,7 +180,8 @@ class LanguageField(nn.Module):
         if latents is not None:
             features.append(latents.reshape(-1, LANGUAGE_CHANNELS))
         features = torch.cat(features, dim=-1)
-        background = torch.cat([self.background, torch.zeros(features.shape[1] - 3)])
+        behind = self.background if background is None else background.to(features.dtype)
+        background = torch.cat([behind, torch.zeros(features.shape[1] - 3)])
         # Channels past rgb + distance (the latents) pass no gradient to the geometry: L_LF trains only
         # the language features, in the same rasterization pass.
         out = rasterize(

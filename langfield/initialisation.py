@@ -18,8 +18,10 @@ forms from it. With the poses known, the photos alone give surface points:
 - ``random``: uniform in the bounds (DNGaussian), also the fallback when a method finds too few
   points, with a warning.
 
-Every method adds a sparse random fill inside the bounds (``fill`` of the points' count), so regions
-no photo pair resolves can still be claimed by densification.
+The start has the number of Gaussians asked for. Photos that resolve fewer points than that are
+topped up near their own surfaces (copies of their points moved by about one neighbour spacing), and
+every method adds a sparse random fill inside the bounds (``fill`` of the photo points' count), so
+regions no photo pair resolves can still be claimed by densification.
 """
 
 from __future__ import annotations
@@ -360,7 +362,8 @@ def start_points(
         method: "dense", "sfm", "depth" or "random".
         cameras, images: the training views.
         bounds: [2, 3] scene box.
-        num: the number of Gaussians to start with (photo points are thinned to ``num / (1 + fill)``).
+        num: the number of Gaussians to start with (photo points are thinned or topped up to
+            ``num / (1 + fill)``).
         seed: seed of the random points.
         fill: random points as a fraction of the photo points.
         priors, depth_kind: the training views' depth priors (``method="depth"``).
@@ -398,18 +401,41 @@ def start_points(
             stacklevel=2,
         )
         used, photo, colors = "random", photo[:0], colors[:0]
-    # With photo points to spare the start has exactly `num` Gaussians; with fewer, `fill` of them more.
-    if used == "random":
-        n_random = num
-    elif len(photo) >= wanted:
-        n_random = num - len(photo)
-    else:
-        n_random = round(fill * len(photo))
+    # The start has exactly `num` Gaussians: photos that gave fewer than `wanted` points are topped up
+    # near their own surfaces (capacity where the geometry is, not in free space), then `fill` random.
+    n_photo = len(photo)
+    if used != "random" and n_photo < wanted:
+        photo, colors = _top_up(photo, colors, wanted, bounds, seed)
+    n_random = num - len(photo)
     rand = random_points(bounds, n_random, seed)
     points = np.concatenate([photo, rand]).astype(np.float32)
     colors = np.concatenate([colors, np.full((n_random, 3), 0.5, np.float32)]).astype(np.float32)
-    stats.update(used=used, photo_points=len(photo), random_points=n_random, seconds=time.perf_counter() - t0)
+    stats.update(
+        used=used,
+        photo_points=n_photo,
+        near_surface_points=len(photo) - n_photo,
+        random_points=n_random,
+        seconds=time.perf_counter() - t0,
+    )
     return StartPoints(points, colors, used, stats)
+
+
+def _top_up(
+    points: np.ndarray, colors: np.ndarray, wanted: int, bounds: np.ndarray, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``wanted`` points: ``points`` and copies of them (drawn evenly, with their colours) moved by a
+    normal offset of each one's neighbour spacing, kept inside ``bounds``."""
+    import torch
+
+    from langfield.gaussians import mean_sq_neighbor_distance
+
+    extra = wanted - len(points)
+    rng = np.random.default_rng(seed)
+    source = rng.integers(0, len(points), extra)
+    spacing = np.sqrt(np.maximum(mean_sq_neighbor_distance(torch.from_numpy(points)).numpy(), 1e-12))
+    moved = points[source] + rng.standard_normal((extra, 3)).astype(np.float32) * spacing[source, None]
+    moved = np.clip(moved, bounds[0], bounds[1]).astype(np.float32)
+    return np.concatenate([points, moved]), np.concatenate([colors, colors[source]])
 
 
 def _inside(points: np.ndarray, colors: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -116,6 +116,9 @@ class TrainConfig:
     lambda_virtual: float = 0.0  # virtual-view consistency weight (Binocular-guided 3DGS)
     virtual_baseline: float = 0.05  # its sideways shift, as a fraction of the median rendered depth
     virtual_start: int = 0  # first iteration of the virtual-view term
+    # A random background colour each iteration (scenes without alpha): a surface as dark as the black
+    # background would otherwise be left transparent, and the opacity penalty even asks for that.
+    random_background: bool = False
     lambda_smooth: float = 0.0  # edge-aware smoothness of the rendered depth
     lambda_anisotropy: float = 0.0  # penalty on max/min scale above anisotropy_ratio
     anisotropy_ratio: float = 10.0
@@ -577,8 +580,15 @@ def train(
         if cfg.drop_gamma > 0:
             rate = cfg.drop_gamma * step / max(cfg.iterations, 1)
             keep = drop_compensation(field.num_gaussians, rate, drop_generator)
+        behind = None
+        if cfg.random_background and scene.background is None:
+            behind = torch.rand(3, generator=drop_generator)
         out = field.render(
-            cameras[name], backend=cfg.backend, hard_depth=depths is not None, opacity_scale=keep
+            cameras[name],
+            backend=cfg.backend,
+            hard_depth=depths is not None,
+            opacity_scale=keep,
+            background=behind,
         )
         loss = color_loss(out.rgb, images[name], cfg.lambda_dssim)
         if cfg.lambda_virtual > 0 and step >= cfg.virtual_start:

@@ -121,6 +121,23 @@ def test_start_points_keep_the_count_and_add_the_random_fill() -> None:
     assert inside.all()
 
 
+def test_too_few_photo_points_are_topped_up_near_the_surface() -> None:
+    cams, images = plane_views(z=2.0)
+    bounds = np.array([[-3.0, -3.0, -4.0], [3.0, 3.0, -0.5]])
+    few, _, _ = dense_points(cams, images, bounds)  # every point the plane gives
+    num = 4 * len(few)
+    start = start_points("dense", cams, images, bounds, num, fill=0.1)
+    wanted = round(num / 1.1)
+    assert len(start.points) == num and start.stats["photo_points"] == len(few)
+    assert start.stats["near_surface_points"] == wanted - len(few)
+    assert start.stats["random_points"] == num - wanted
+    added = start.points[len(few) : wanted]
+    # Within a few neighbour spacings of the plane, not spread through the box like the random fill.
+    assert np.median(np.abs(added[:, 2] + 2.0)) < 0.05
+    assert np.median(np.abs(start.points[wanted:, 2] + 2.0)) > 0.3
+    assert np.all((start.points >= bounds[0]) & (start.points <= bounds[1]))
+
+
 def test_start_points_fall_back_to_random_with_a_warning() -> None:
     cams, images = plane_views(z=2.0)
     flat = [np.full_like(im, 0.5) for im in images]

@@ -160,3 +160,21 @@ def test_a_bad_refiner_folder_stops_training_before_work(scene, tmp_path) -> Non
 
     with pytest.raises(ManifestError, match="missing"):
         lf.train(scene, lf.TrainConfig(iterations=2, refiner=str(tmp_path / "missing")), progress=False)
+
+
+def test_random_background_trains_differently_only_without_alpha(tmp_path) -> None:
+    import cv2
+
+    root = make_room(tmp_path / "room", seed=0, width=40, height=30, n_test=1)
+    base = dict(iterations=3, num_gaussians=200, init="random", language=False, depth=False)
+    with_alpha = lf.load_scene(root)
+    a = lf.train(with_alpha, lf.TrainConfig(**base), progress=False)
+    b = lf.train(with_alpha, lf.TrainConfig(**base, random_background=True), progress=False)
+    assert torch.equal(a.splats["means"], b.splats["means"])  # RGBA scenes keep their white background
+    for path in (root / "images").glob("*.png"):
+        cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_COLOR))  # drop the alpha channel
+    opaque = lf.load_scene(root)
+    assert opaque.background is None
+    c = lf.train(opaque, lf.TrainConfig(**base), progress=False)
+    d = lf.train(opaque, lf.TrainConfig(**base, random_background=True), progress=False)
+    assert not torch.equal(c.splats["means"], d.splats["means"])

@@ -52,11 +52,23 @@ def test_different_seeds_give_different_fields(scene) -> None:
 
 
 def test_zero_iterations_returns_the_initial_field(scene) -> None:
-    field = _train(scene, iterations=0, num_gaussians=300, seed=2)
+    field = _train(scene, iterations=0, num_gaussians=300, seed=2, init="random")
     init = G.init_gaussians(np.asarray(field.meta["bounds"]), 300, seed=2)
     for key in init:
         assert torch.equal(field.splats[key], init[key]), key
     assert field.meta["iterations"] == 0 and field.meta["num_gaussians"] == 300
+
+
+def test_zero_iterations_from_the_photos_returns_their_start_points(scene) -> None:
+    from langfield.initialisation import start_points
+
+    field = _train(scene, iterations=0, num_gaussians=300, seed=2)
+    cams = scene.cameras("train")
+    bounds = np.asarray(field.meta["bounds"])
+    start = start_points("dense", cams, [scene.image(c.name) for c in cams], bounds, 300, seed=2)
+    assert torch.equal(field.splats["means"], torch.from_numpy(start.points))
+    assert field.meta["num_gaussians"] == 300 and field.meta["init"]["used"] == "dense"
+    assert field.meta["init"]["photo_points"] > 0
 
 
 def test_training_lowers_the_colour_loss(scene) -> None:
