@@ -15,14 +15,19 @@ The sparse-view switches (:mod:`langfield.regularisers`, :mod:`langfield.initial
 change from the defaults:
 
 - ``random-init``, ``sfm-init``, ``depth-init``: another start than the plane-sweep points;
-- ``no-dropout``: without Gaussian dropout; ``virtual``: with the virtual-view consistency term;
-  ``anisotropy``: with the anisotropy penalty.
+- ``no-dropout``: without Gaussian dropout; ``no-virtual``: without the virtual-view consistency term;
+  ``no-random-background``: the scene's own background colour in every iteration;
+- ``anisotropy``, ``smooth`` (off by default, measured without effect): with the anisotropy penalty,
+  with edge-aware depth smoothness.
 
-Cases that need what a scene lacks (language features, depth priors) are skipped with a warning:
-they would train ``full`` again. ``GEOMETRY_CASES`` are the sparse-view set.
+Cases that would train ``full`` again are skipped with a warning: those that need what a scene lacks
+(language features, depth priors, an opaque background), and those equal to the base settings.
+``GEOMETRY_CASES`` are the sparse-view set.
 
 Each row: mIoU / mAcc (where the scene has labels and querying can score them), PSNR and SSIM on test
-views, aligned depth error and floaters (scenes with ground truth), training seconds and Gaussians.
+views (masked PSNR where the scene has object masks), aligned depth error and floaters (scenes with
+ground truth), the training views' depth agreement (:func:`~langfield.geometry_eval.depth_agreement`),
+training seconds and Gaussians.
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ from typing import Any
 from langfield.atomic import atomic_path, check_writable_file
 from langfield.evaluate import evaluate
 from langfield.field import check_output_folder
-from langfield.geometry_eval import count_floaters, depth_errors
+from langfield.geometry_eval import count_floaters, depth_agreement, depth_errors
 from langfield.scene import Scene
 from langfield.trainer import TrainConfig, check_inputs, train
 
@@ -52,14 +57,26 @@ CASES: dict[str, dict[str, Any]] = {
     "sfm-init": {"init": "sfm"},
     "depth-init": {"init": "depth"},
     "no-dropout": {"drop_gamma": 0.0},
-    "virtual": {"lambda_virtual": 1.0},
+    "no-virtual": {"lambda_virtual": 0.0},
+    "no-random-background": {"random_background": False},
     "anisotropy": {"lambda_anisotropy": 0.01},
     "smooth": {"lambda_smooth": 0.1},
 }
 LANGUAGE_CASES = ("no-lop", "per-gaussian", "baseline")
 DEPTH_CASES = ("no-lad", "no-depth", "depth-init")
-DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian", "random-init", "no-dropout")
-GEOMETRY_CASES = ("full", "random-init", "sfm-init", "no-dropout", "virtual", "anisotropy")
+BACKGROUND_CASES = ("no-random-background",)  # only scenes without alpha draw a random background
+DEFAULT_CASES = (
+    "full",
+    "no-lop",
+    "no-lad",
+    "no-depth",
+    "per-gaussian",
+    "random-init",
+    "no-dropout",
+    "no-virtual",
+    "no-random-background",
+)
+GEOMETRY_CASES = ("full", "random-init", "no-dropout", "no-virtual", "no-random-background")
 
 
 def run_case(
@@ -74,6 +91,7 @@ def run_case(
     report = evaluate(field, scene)
     depth = depth_errors(field, scene)
     floaters = count_floaters(field, scene)
+    agreement = depth_agreement(field, scene)
     return {
         "mIoU": report.get("mIoU"),
         "mAcc": report.get("mAcc"),
@@ -82,6 +100,7 @@ def run_case(
         "masked_PSNR": report.get("masked_PSNR"),
         "depth_abs_rel": None if depth is None else depth["abs_rel"],
         "floaters": None if floaters is None else floaters["floaters"],
+        "depth_agreement": None if agreement is None else agreement["agreement"],
         "train_seconds": field.meta["train_seconds"],
         "ms_per_iteration": 1000 * field.meta["train_seconds"] / max(cfg.iterations, 1),
         "num_gaussians": field.num_gaussians,
@@ -109,14 +128,22 @@ def run_ablation(
     names = scene.names("train")
     has_language = base.language is not False and all(scene.feature_paths(n) is not None for n in names)
     has_depth = base.depth is not False and all(scene.depth_path(n) is not None for n in names)
+    # A case that would train `full` again: it needs what the scene lacks (language features, depth
+    # priors, a background of its own to replace), or it changes nothing from `base`.
+    photos_have_background = scene.background is None
     skipped = [
         c
         for c in cases
-        if (c in LANGUAGE_CASES and not has_language) or (c in DEPTH_CASES and not has_depth)
+        if (c in LANGUAGE_CASES and not has_language)
+        or (c in DEPTH_CASES and not has_depth)
+        or (c in BACKGROUND_CASES and not photos_have_background)
+        or (c != "full" and replace(base, **CASES[c]) == base)
     ]
     if skipped:
         warnings.warn(
-            f"{scene.root}: cases {skipped} need language features or depth priors it lacks; skipped",
+            f"{scene.root}: cases {skipped} would train full again here (the scene lacks language "
+            "features, depth priors or an opaque background, or the base settings already have them); "
+            "skipped",
             stacklevel=2,
         )
     cases = tuple(c for c in cases if c not in skipped)
@@ -142,14 +169,15 @@ def format_table(rows: dict[str, dict]) -> str:
         return "n/a" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)
 
     head = (
-        "| case | mIoU | mAcc | PSNR | SSIM | masked PSNR | depth AbsRel | floaters | Gaussians | s | ms/it |"
+        "| case | mIoU | mAcc | PSNR | SSIM | masked PSNR | depth AbsRel | floaters | depth agreement "
+        "| Gaussians | s | ms/it |"
     )
-    lines = [head, "|" + "---|" * 11]
+    lines = [head, "|" + "---|" * 12]
     for case, r in rows.items():
         lines.append(
             f"| {case} | {fmt(r['mIoU'], 3)} | {fmt(r['mAcc'], 3)} | {fmt(r['PSNR'], 2)} | "
             f"{fmt(r['SSIM'], 3)} | {fmt(r.get('masked_PSNR'), 2)} | {fmt(r['depth_abs_rel'], 4)} | "
-            f"{fmt(r['floaters'], 0)} | "
+            f"{fmt(r['floaters'], 0)} | {fmt(r.get('depth_agreement'), 3)} | "
             f"{r['num_gaussians']} | {r['train_seconds']:.0f} | {r['ms_per_iteration']:.0f} |"
         )
     return "\n".join(lines)

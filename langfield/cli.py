@@ -96,7 +96,23 @@ def train_config(args: argparse.Namespace):
         lop=not args.no_lop,
         refiner=args.refiner,
     )
-    return cfg if args.lambda_opacity is None else replace(cfg, lambda_opacity=args.lambda_opacity)
+    # Flags left unset keep TrainConfig's defaults.
+    given = {name: getattr(args, name) for name in SPARSE_VIEW_FLAGS if getattr(args, name) is not None}
+    if args.lambda_opacity is not None:
+        given["lambda_opacity"] = args.lambda_opacity
+    return replace(cfg, **given)
+
+
+# TrainConfig settings of the sparse-view regularisers that `langfield train` sets by flag.
+SPARSE_VIEW_FLAGS = (
+    "drop_gamma",
+    "lambda_virtual",
+    "virtual_baseline",
+    "virtual_directions",
+    "random_background",
+    "lambda_smooth",
+    "lambda_anisotropy",
+)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -323,6 +339,45 @@ def build_parser() -> argparse.ArgumentParser:
         help="weight of the L1 opacity penalty that fades unneeded Gaussians (default: TrainConfig's)",
     )
     p.add_argument(
+        "--drop-gamma",
+        type=float,
+        default=None,
+        help="Gaussian dropout: a fraction gamma t / T left out at iteration t (DropGaussian; 0: off)",
+    )
+    p.add_argument(
+        "--lambda-virtual",
+        type=float,
+        default=None,
+        help="weight of the virtual-view consistency term (Binocular-guided 3DGS; 0: off)",
+    )
+    p.add_argument(
+        "--virtual-baseline",
+        type=float,
+        default=None,
+        help="sideways shift of the virtual camera as a fraction of the median rendered depth",
+    )
+    p.add_argument(
+        "--virtual-directions",
+        choices=["horizontal", "any"],
+        default=None,
+        help="virtual cameras shifted left or right (a stereo pair), or in any direction of the image plane",
+    )
+    p.add_argument(
+        "--random-background",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="a random background colour each iteration on scenes without alpha",
+    )
+    p.add_argument(
+        "--lambda-smooth", type=float, default=None, help="weight of edge-aware depth smoothness (0: off)"
+    )
+    p.add_argument(
+        "--lambda-anisotropy",
+        type=float,
+        default=None,
+        help="weight of the penalty on Gaussians longer than 10x their width (0: off)",
+    )
+    p.add_argument(
         "--refiner",
         default=None,
         help="an ONNX image-refiner folder (manifest kind 'refiner'): cleans renders of virtual views "
@@ -354,8 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--cases",
         default=None,
         help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, baseline, "
-        "no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, virtual, anisotropy (default: full, "
-        "no-lop, no-lad, no-depth, per-gaussian, random-init, no-dropout; those a scene cannot use skipped)",
+        "no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, no-virtual, no-random-background, "
+        "anisotropy, smooth (default: full, no-lop, no-lad, no-depth, per-gaussian, random-init, no-dropout, "
+        "no-virtual, no-random-background; those a scene cannot use skipped)",
     )
     _add_scene_flags(p)
     p.set_defaults(func=cmd_ablate)

@@ -3,7 +3,9 @@
 - :func:`aligned_depth_error`: novel-view depth error after a per-view least-squares scale-and-shift fit
   to the true depth (monocular priors and sparse-view renders agree with the truth only up to those);
 - :func:`count_floaters`: Gaussians whose centre lies farther than a tolerance from every true surface;
-- :func:`observed_fraction`: how much of a test view shows surfaces some training view sees.
+- :func:`observed_fraction`: how much of a test view shows surfaces some training view sees;
+- :func:`depth_agreement` (any scene, no ground truth needed): whether the training views' rendered
+  depths describe one surface, each view's surface reprojected into the others.
 
 Both are used by ``langfield ablate`` to show what LAD and LOP change (issue: depth distillation and
 outlier pruning). Scenes without ``gt/`` give ``None``.
@@ -162,3 +164,57 @@ def observed_fraction(scene: Scene, split: str = "test", tolerance: float = 0.02
     if not views:
         return None
     return {"mean": float(np.mean(list(views.values()))), "views": views}
+
+
+def depth_agreement(
+    field: LanguageField, scene: Scene, split: str = "train", rel: float = 0.02, min_alpha: float = MIN_ALPHA
+) -> dict | None:
+    """Multi-view coherence of the rendered depth, with no ground truth: every pixel a view covers
+    (alpha >= ``min_alpha``) is lifted to its rendered surface point (depth / alpha) and projected into
+    every other view of ``split``; it agrees where it lands inside that image on a covered pixel whose
+    rendered z-depth is within ``rel`` (relative) of the point's. Three views fitted with incoherent
+    depth each agree with themselves only; one surface seen three times agrees up to occlusions.
+
+    Returns:
+        ``{"agreement": agreeing / landed, "landed": pixels that landed in a covered pixel of another
+        view}``, or None with fewer than two views or nothing covered.
+    """
+    names = scene.names(split)
+    if len(names) < 2:
+        return None
+    cams = [scene.camera(n) for n in names]
+    z_maps, covered = [], []
+    with torch.no_grad():
+        for cam in cams:
+            out = field.render(cam)
+            alpha = out.alpha.numpy().astype(np.float64)
+            distance = out.depth.numpy().astype(np.float64) / np.maximum(alpha, 1e-6)
+            z_maps.append(distance / ray_lengths(cam))
+            covered.append(alpha >= min_alpha)
+    agree = landed = 0
+    for i, cam in enumerate(cams):
+        rows, cols = np.nonzero(covered[i])
+        z = z_maps[i][rows, cols]
+        # Pixel centres at z-depth z in OpenCV camera space, then world space.
+        cam_points = np.stack(
+            [(cols + 0.5 - cam.cx) / cam.fx * z, (rows + 0.5 - cam.cy) / cam.fy * z, z, np.ones_like(z)],
+            axis=1,
+        )
+        world = cam_points @ np.linalg.inv(cam.world_to_camera(torch.float64).numpy()).T
+        for j, other in enumerate(cams):
+            if i == j:
+                continue
+            p = world @ other.world_to_camera(torch.float64).numpy().T
+            depth = p[:, 2]
+            front = depth > 1e-9
+            u = np.floor(other.fx * p[front, 0] / depth[front] + other.cx).astype(np.int64)
+            v = np.floor(other.fy * p[front, 1] / depth[front] + other.cy).astype(np.int64)
+            depth = depth[front]
+            inside = (u >= 0) & (v >= 0) & (u < other.width) & (v < other.height)
+            u, v, depth = u[inside], v[inside], depth[inside]
+            hit = covered[j][v, u]
+            landed += int(hit.sum())
+            agree += int((np.abs(z_maps[j][v, u][hit] - depth[hit]) <= rel * depth[hit]).sum())
+    if landed == 0:
+        return None
+    return {"agreement": agree / landed, "landed": landed}

@@ -8,7 +8,8 @@
   camera is shifted sideways by a baseline b, the shifted view is rendered, and warped back to the
   training view with the disparity f b / z of the training view's rendered depth; the warp must give
   the training image (L1 + D-SSIM). A wrong depth warps the wrong pixels, so the loss corrects the
-  geometry between the views from the photos alone.
+  geometry between the views from the photos alone. Optionally the shift takes any direction in the
+  image plane: object scans whose test views also differ in elevation need vertical parallax too.
 - Edge-aware depth smoothness (Godard et al., CVPR 2017, eq. 3, as monocular depth training uses it):
   the rendered depth, divided by its mean so the term does not depend on the scene's scale, should
   change little where the image does not; textureless surfaces (a white table) then take their depth
@@ -20,6 +21,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -33,7 +35,9 @@ __all__ = [
     "depth_smoothness",
     "drop_compensation",
     "shifted_camera",
+    "virtual_shift",
     "virtual_view_warp",
+    "z_depth",
 ]
 
 
@@ -51,11 +55,11 @@ def drop_compensation(n: int, rate: float, generator: torch.Generator) -> Tensor
     return keep.float() / (1.0 - rate)
 
 
-def shifted_camera(cam: Camera, baseline: float) -> Camera:
-    """The camera moved by ``baseline`` along its own x axis (to its right for baseline > 0)."""
+def shifted_camera(cam: Camera, right: float, up: float = 0.0) -> Camera:
+    """The camera moved by ``right`` along its own x axis and ``up`` along its own y axis (OpenGL: up)."""
     c2w = cam.c2w.copy()
-    c2w[:3, 3] = c2w[:3, 3] + baseline * c2w[:3, 0]
-    return replace(cam, name=f"{cam.name}+{baseline:.3g}", c2w=c2w)
+    c2w[:3, 3] = c2w[:3, 3] + right * c2w[:3, 0] + up * c2w[:3, 1]
+    return replace(cam, name=f"{cam.name}+{right:.3g},{up:.3g}", c2w=c2w)
 
 
 def z_depth(distance: Tensor, cam: Camera) -> Tensor:
@@ -70,19 +74,20 @@ def z_depth(distance: Tensor, cam: Camera) -> Tensor:
 
 
 def virtual_view_warp(
-    shifted_image: Tensor, depth_z: Tensor, cam: Camera, baseline: float
+    shifted_image: Tensor, depth_z: Tensor, cam: Camera, right: float, up: float = 0.0
 ) -> tuple[Tensor, Tensor]:
-    """Warps the render of :func:`shifted_camera` ``(cam, baseline)`` back onto ``cam``.
+    """Warps the render of :func:`shifted_camera` ``(cam, right, up)`` back onto ``cam``.
 
-    A point at z-depth z seen at column u by ``cam`` is at column u - fx b / z in the shifted view (same
-    row: the shift is along the camera's x axis), so the warp samples the shifted image there
-    (bilinear, differentiable in both the image and the depth).
+    The shift is parallel to the image plane, so a point at z-depth z seen at pixel (u, v) by ``cam``
+    is at (u - fx right / z, v + fy up / z) in the shifted view (image rows run down, the camera's y
+    axis up); the warp samples the shifted image there (bilinear, differentiable in both the image
+    and the depth).
 
     Args:
         shifted_image: [H, W, C] render of the shifted camera.
         depth_z: [H, W] z-depth of ``cam``'s render (> 0 where valid).
         cam: the training camera.
-        baseline: the shift used.
+        right, up: the shift used.
 
     Returns:
         ``(warped [H, W, C], valid [H, W] bool)``: valid where the depth is positive and the sample
@@ -93,14 +98,16 @@ def virtual_view_warp(
         torch.arange(h, dtype=depth_z.dtype) + 0.5, torch.arange(w, dtype=depth_z.dtype) + 0.5, indexing="ij"
     )
     positive = depth_z > 1e-6
-    source_u = u - cam.fx * baseline / torch.where(positive, depth_z, torch.ones_like(depth_z))
-    grid = torch.stack([2.0 * source_u / w - 1.0, 2.0 * v / h - 1.0], dim=-1)[None]
+    inverse = 1.0 / torch.where(positive, depth_z, torch.ones_like(depth_z))
+    source_u = u - cam.fx * right * inverse
+    source_v = v + cam.fy * up * inverse
+    grid = torch.stack([2.0 * source_u / w - 1.0, 2.0 * source_v / h - 1.0], dim=-1)[None]
     image = shifted_image.permute(2, 0, 1)[None]
     warped = torch.nn.functional.grid_sample(
         image, grid, mode="bilinear", padding_mode="border", align_corners=False
     )
-    valid = positive & (source_u >= 0.5) & (source_u <= w - 0.5)
-    return warped[0].permute(1, 2, 0), valid
+    inside = (source_u >= 0.5) & (source_u <= w - 0.5) & (source_v >= 0.5) & (source_v <= h - 0.5)
+    return warped[0].permute(1, 2, 0), positive & inside
 
 
 def anisotropy_loss(log_scales: Tensor, ratio: float) -> Tensor:
@@ -116,11 +123,19 @@ def anisotropy_loss(log_scales: Tensor, ratio: float) -> Tensor:
     return (torch.exp(spread).clamp_min(ratio) - ratio).mean()
 
 
-def baseline_for(depth_z: Tensor, valid: Tensor, fraction: float, rng: np.random.Generator) -> float:
-    """A random sideways shift of ``fraction`` times the median rendered depth, to the left or right."""
+def virtual_shift(
+    depth_z: Tensor, valid: Tensor, fraction: float, rng: np.random.Generator, any_direction: bool = False
+) -> tuple[float, float]:
+    """A random ``(right, up)`` shift of the camera, ``fraction`` times the median rendered depth long
+    (times a uniform draw in [0.5, 1]): to the left or right (a stereo pair, as Binocular-guided 3DGS),
+    or with ``any_direction`` at a uniform angle in the image plane (vertical parallax as well)."""
     depths = depth_z[valid]
     scale = float(depths.median()) if depths.numel() else 0.0
-    return float(rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0) * fraction * scale)
+    length = float(rng.uniform(0.5, 1.0) * fraction * scale)
+    if any_direction:
+        angle = float(rng.uniform(0.0, 2.0 * math.pi))
+        return length * math.cos(angle), length * math.sin(angle)
+    return float(rng.choice([-1.0, 1.0])) * length, 0.0
 
 
 def depth_smoothness(depth: Tensor, image: Tensor, valid: Tensor, edge_weight: float = 10.0) -> Tensor:

@@ -114,9 +114,7 @@ def _expected_conics(means, quats, scales, cam: Camera, lims) -> np.ndarray:
         x, y, z = mean
         tx = z * np.clip(x / z, -x_neg, x_pos)
         ty = z * np.clip(y / z, -y_neg, y_pos)
-        jac = np.array(
-            [[cam.fx / z, 0.0, -cam.fx * tx / z**2], [0.0, cam.fy / z, -cam.fy * ty / z**2]]
-        )
+        jac = np.array([[cam.fx / z, 0.0, -cam.fx * tx / z**2], [0.0, cam.fy / z, -cam.fy * ty / z**2]])
         m = _rotmat(q) * s[None, :]
         cov = jac @ (m @ m.T) @ jac.T + 0.3 * np.eye(2)
         inv = np.linalg.inv(cov)

@@ -131,6 +131,11 @@ def test_an_interrupted_save_keeps_the_old_field(scene_dir, field_dir, tmp_path,
         (["--iterations", "-3"], "--iterations"),
         (["--lambda-opacity", "nan"], "--lambda-opacity"),
         (["--bounds", "0,0,0,1,1,0"], "--bounds"),
+        (["--drop-gamma", "1.5"], "--drop-gamma"),
+        (["--lambda-virtual", "-1"], "--lambda-virtual"),
+        (["--virtual-baseline", "0"], "--virtual-baseline"),
+        (["--lambda-smooth", "inf"], "--lambda-smooth"),
+        (["--lambda-anisotropy", "-0.1"], "--lambda-anisotropy"),
     ],
 )
 def test_bad_flag_values_exit_2_naming_the_flag(scene_dir, tmp_path, capsys, no_work, flags, named) -> None:

@@ -157,6 +157,30 @@ def test_geometry_figures_on_the_synthetic_scene(trained, room):
     assert count_floaters(trained, scene)["floaters"] >= 1
 
 
+def test_every_ablation_case_changes_the_defaults():
+    from dataclasses import replace
+
+    from langfield.ablate import CASES, DEFAULT_CASES
+
+    base = TrainConfig()
+    assert set(DEFAULT_CASES) <= set(CASES)
+    for case, change in CASES.items():
+        if case != "full":
+            assert replace(base, **change) != base, case  # a case equal to the defaults trains full again
+
+
+def test_cases_that_would_train_full_again_are_skipped(room):
+    from langfield.ablate import run_ablation
+
+    base = TrainConfig(iterations=1, num_gaussians=100, init="random", lop=False)
+    # The room's images have alpha (no background to replace); base already has lop=False.
+    with pytest.warns(UserWarning, match=r"no-random-background.*no-lop|no-lop.*no-random-background"):
+        rows = run_ablation(
+            load_scene(room), base, ("full", "no-random-background", "no-lop"), progress=False
+        )
+    assert set(rows) == {"full"}
+
+
 def test_ablate_command_writes_one_table(room, tmp_path):
     out = tmp_path / "ablate"
     code = main(["ablate", str(room), "--out", str(out), "--iterations", "4", "--cases", "full,no-depth"])

@@ -13,6 +13,7 @@ from langfield.regularisers import (
     depth_smoothness,
     drop_compensation,
     shifted_camera,
+    virtual_shift,
     virtual_view_warp,
     z_depth,
 )
@@ -30,11 +31,26 @@ def test_dropout_drops_the_rate_and_keeps_the_expected_opacity() -> None:
         drop_compensation(10, 1.0, g)
 
 
-def test_shifted_camera_moves_along_its_own_x_axis() -> None:
+def test_shifted_camera_moves_along_its_own_x_and_y_axes() -> None:
     cam = Camera.look_at((0.0, -3.0, 1.0), (0.0, 0.0, 1.0), width=40, height=30)
     moved = shifted_camera(cam, 0.5)
     np.testing.assert_allclose(moved.center - cam.center, 0.5 * cam.c2w[:3, 0])
     np.testing.assert_allclose(moved.c2w[:3, :3], cam.c2w[:3, :3])
+    lifted = shifted_camera(cam, 0.0, 0.25)
+    np.testing.assert_allclose(lifted.center - cam.center, [0.0, 0.0, 0.25])  # the camera's up is world z
+
+
+def test_virtual_shift_length_and_direction() -> None:
+    depth, valid = torch.full((10, 10), 4.0), torch.ones(10, 10, dtype=torch.bool)
+    rng = np.random.default_rng(0)
+    stereo = [virtual_shift(depth, valid, 0.1, rng) for _ in range(200)]
+    assert all(up == 0.0 and 0.2 <= abs(right) <= 0.4 for right, up in stereo)
+    assert {np.sign(right) for right, _ in stereo} == {-1.0, 1.0}
+    free = np.array([virtual_shift(depth, valid, 0.1, rng, any_direction=True) for _ in range(200)])
+    lengths = np.linalg.norm(free, axis=1)
+    assert lengths.min() >= 0.2 - 1e-9 and lengths.max() <= 0.4 + 1e-9
+    assert (np.abs(free[:, 1]) > 0.1).mean() > 0.3  # vertical shifts occur
+    assert virtual_shift(depth, torch.zeros_like(valid), 0.1, rng) == (0.0, 0.0)  # nothing covered
 
 
 def test_z_depth_of_a_plane_is_constant() -> None:
@@ -57,6 +73,45 @@ def test_the_warp_with_the_true_depth_gives_back_the_training_image() -> None:
     assert valid.sum() > 0.8 * valid.numel() and not valid[:, 0].any()  # the left edge comes from outside
     # Bilinear sampling of sin(x / 5) errs by at most h^2 / 8 * |f"| = 1 / 200.
     torch.testing.assert_close(warped[valid], training[valid], atol=5.1e-3, rtol=0)
+
+
+def test_the_vertical_warp_with_the_true_depth_gives_back_the_training_image() -> None:
+    """Camera moved up by b: a point at z seen at row v is at row v + fy b / z in the lifted view."""
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=16, height=64)
+    z, b = 2.0, 0.1
+    disparity = cam.fy * b / z
+    v = torch.arange(64, dtype=torch.float32) + 0.5
+    pattern = lambda x: torch.sin(x / 5.0)  # noqa: E731
+    training = pattern(v)[:, None].expand(64, 16)[..., None].repeat(1, 1, 3)
+    lifted = pattern(v - disparity)[:, None].expand(64, 16)[..., None].repeat(1, 1, 3)
+    warped, valid = virtual_view_warp(lifted, torch.full((64, 16), z), cam, 0.0, b)
+    assert valid.sum() > 0.8 * valid.numel() and not valid[-1].any()  # the bottom rows come from outside
+    torch.testing.assert_close(warped[valid], training[valid], atol=5.1e-3, rtol=0)
+
+
+def test_the_warp_matches_a_render_of_the_shifted_camera() -> None:
+    """Against the rasterizer: a textured plane of small Gaussians rendered from the lifted camera and
+    warped back with the plane's depth gives the training render (up to resampling)."""
+    from langfield import gaussians as G
+    from langfield.raster import rasterize
+
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=48, height=40)
+    ys, xs = torch.meshgrid(torch.linspace(-1.6, 1.6, 90), torch.linspace(-1.6, 1.6, 90), indexing="ij")
+    means = torch.stack([xs.flatten(), ys.flatten(), torch.full((8100,), -2.0)], dim=1)
+    colors = (0.5 + 0.5 * torch.sin(3 * means[:, :1] + 5 * means[:, 1:2])).repeat(1, 3)
+    splats = G.gaussians_at(means, init_opacity=0.99)
+
+    def render(c: Camera) -> torch.Tensor:
+        out = rasterize(splats["means"], splats["quats"], G.scales(splats), G.opacities(splats), colors, c)
+        return out.image.detach()
+
+    right, up = 0.06, -0.08
+    lifted = render(shifted_camera(cam, right, up))
+    warped, valid = virtual_view_warp(lifted, torch.full((40, 48), 2.0), cam, right, up)
+    inner = valid.clone()
+    inner[:3], inner[-3:], inner[:, :3], inner[:, -3:] = False, False, False, False
+    assert inner.sum() > 0.6 * inner.numel()
+    assert (warped - render(cam)).abs()[inner].mean() < 0.03
 
 
 def test_the_warp_passes_gradient_to_the_depth() -> None:
@@ -115,8 +170,28 @@ def test_training_with_every_regulariser_runs_and_is_recorded(scene) -> None:
     assert recorded["lambda_anisotropy"] == 0.1
 
 
+def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
+    import json
+
+    from langfield.cli import main
+
+    out = tmp_path / "out"
+    flags = ["--drop-gamma", "0.3", "--lambda-virtual", "0.5", "--virtual-baseline", "0.25"]
+    flags += ["--no-random-background", "--lambda-smooth", "0.01", "--lambda-anisotropy", "0.02"]
+    argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
+    assert main([*argv, "--init", "random", *flags]) == 0
+    recorded = json.loads((out / "field.json").read_text())["config"]
+    expected = {"drop_gamma": 0.3, "lambda_virtual": 0.5, "virtual_baseline": 0.25}
+    expected.update(random_background=False, lambda_smooth=0.01, lambda_anisotropy=0.02)
+    assert {k: recorded[k] for k in expected} == expected
+    assert main([*argv, "--force", "--random-background"]) == 0
+    assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
+
+
 def test_dropout_changes_training_and_rendering_uses_every_gaussian(scene) -> None:
-    base = lf.TrainConfig(iterations=4, num_gaussians=300, init="random", language=False, depth=False)
+    base = lf.TrainConfig(
+        iterations=4, num_gaussians=300, init="random", language=False, depth=False, drop_gamma=0.0
+    )
     plain = lf.train(scene, base, progress=False)
     dropped = lf.train(scene, lf.TrainConfig(**{**base.__dict__, "drop_gamma": 0.5}), progress=False)
     assert not torch.equal(plain.splats["means"], dropped.splats["means"])
@@ -168,13 +243,13 @@ def test_random_background_trains_differently_only_without_alpha(tmp_path) -> No
     root = make_room(tmp_path / "room", seed=0, width=40, height=30, n_test=1)
     base = dict(iterations=3, num_gaussians=200, init="random", language=False, depth=False)
     with_alpha = lf.load_scene(root)
-    a = lf.train(with_alpha, lf.TrainConfig(**base), progress=False)
+    a = lf.train(with_alpha, lf.TrainConfig(**base, random_background=False), progress=False)
     b = lf.train(with_alpha, lf.TrainConfig(**base, random_background=True), progress=False)
     assert torch.equal(a.splats["means"], b.splats["means"])  # RGBA scenes keep their white background
     for path in (root / "images").glob("*.png"):
         cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_COLOR))  # drop the alpha channel
     opaque = lf.load_scene(root)
     assert opaque.background is None
-    c = lf.train(opaque, lf.TrainConfig(**base), progress=False)
+    c = lf.train(opaque, lf.TrainConfig(**base, random_background=False), progress=False)
     d = lf.train(opaque, lf.TrainConfig(**base, random_background=True), progress=False)
     assert not torch.equal(c.splats["means"], d.splats["means"])
