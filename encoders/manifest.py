@@ -100,6 +100,14 @@ def manifest_triple(manifest: dict, key: str, where: Path) -> np.ndarray:
     return arr
 
 
+def manifest_normalisation(manifest: dict, where: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The manifest's per-channel ``mean`` and ``std`` (std positive), or a ManifestError."""
+    mean, std = manifest_triple(manifest, "mean", where), manifest_triple(manifest, "std", where)
+    if (std <= 0).any():
+        raise ManifestError(f"{where}: 'std' must be positive, got {std.tolist()}")
+    return mean, std
+
+
 def onnx_session(path: str | Path) -> Any:
     """An onnxruntime CPU session of one file, or a ValueError naming it."""
     import onnxruntime as ort

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from encoders.manifest import ManifestError, manifest_triple, onnx_session, read_manifest
+from encoders.manifest import ManifestError, manifest_normalisation, onnx_session, read_manifest
 from encoders.protocols import check_phrases
 
 __all__ = ["ClipTokenizer", "OnnxClipEncoder", "bytes_to_unicode", "clean_text"]
@@ -207,10 +207,7 @@ class OnnxClipEncoder:
         self.image_size = _positive_int(manifest, "input_size", where)
         self.dim = _positive_int(manifest, "dim", where)
         self.context_length = _positive_int(manifest, "context_length", where)
-        self._mean = manifest_triple(manifest, "mean", where)
-        self._std = manifest_triple(manifest, "std", where)
-        if (self._std <= 0).any():
-            raise ManifestError(f"{where}: 'std' must be positive, got {self._std.tolist()}")
+        self._mean, self._std = manifest_normalisation(manifest, where)
         if manifest.get("output") != "unit":
             raise ManifestError(
                 f"{where}: 'output' must be 'unit' (L2-normalised rows), got {manifest.get('output')!r}"

@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from encoders.manifest import ManifestError, manifest_triple, onnx_session, read_manifest
+from encoders.manifest import ManifestError, manifest_normalisation, onnx_session, read_manifest
 from encoders.protocols import DEPTH_KINDS, DepthKind, check_image
 
 __all__ = ["OnnxDepthEstimator"]
@@ -74,10 +74,7 @@ class OnnxDepthEstimator:
         ):
             raise ManifestError(f"{where}: 'input_size' must be [H, W], two positive integers, got {size!r}")
         self.input_size = (size[0], size[1])
-        self._mean = manifest_triple(manifest, "mean", where)
-        self._std = manifest_triple(manifest, "std", where)
-        if (self._std <= 0).any():
-            raise ManifestError(f"{where}: 'std' must be positive, got {self._std.tolist()}")
+        self._mean, self._std = manifest_normalisation(manifest, where)
         self._path = manifest["files"]["model"]
         self._session = onnx_session(self._path)
         inputs = self._session.get_inputs()

@@ -36,7 +36,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from encoders.manifest import MANIFEST, ManifestError, manifest_triple, onnx_session, read_manifest
+from encoders.manifest import MANIFEST, ManifestError, manifest_normalisation, onnx_session, read_manifest
 from encoders.protocols import check_image
 
 __all__ = ["OnnxImageRefiner"]
@@ -79,10 +79,7 @@ class OnnxImageRefiner:
         if not isinstance(confidence, bool):
             raise ManifestError(f"{where}: 'confidence' must be true or false, got {confidence!r}")
         self.confidence = confidence
-        self._mean = manifest_triple(manifest, "mean", where)
-        self._std = manifest_triple(manifest, "std", where)
-        if (self._std <= 0).any():
-            raise ManifestError(f"{where}: 'std' must be positive, got {self._std.tolist()}")
+        self._mean, self._std = manifest_normalisation(manifest, where)
         self._path = manifest["files"]["model"]
         self._session = onnx_session(self._path)
         self._input = self._check_io(where)
