@@ -17,6 +17,8 @@ change from the defaults:
 - ``random-init``, ``sfm-init``, ``depth-init``: another start than the plane-sweep points;
 - ``no-dropout``: without Gaussian dropout; ``no-virtual``: without the virtual-view consistency term;
   ``no-random-background``: the scene's own background colour in every iteration;
+  ``no-empty-space``: no use of the empty space the photos show (alpha, a black backdrop);
+  ``no-opacity-decay``: without Binocular-guided 3DGS's opacity decay;
 - ``anisotropy``, ``smooth`` (off by default, measured without effect): with the anisotropy penalty,
   with edge-aware depth smoothness.
 
@@ -43,7 +45,7 @@ from langfield.evaluate import evaluate
 from langfield.field import check_output_folder
 from langfield.geometry_eval import count_floaters, depth_agreement, depth_errors
 from langfield.scene import Scene
-from langfield.trainer import TrainConfig, check_inputs, train
+from langfield.trainer import TrainConfig, check_inputs, empty_space, train
 
 CASES: dict[str, dict[str, Any]] = {
     "full": {},
@@ -59,24 +61,25 @@ CASES: dict[str, dict[str, Any]] = {
     "no-dropout": {"drop_gamma": 0.0},
     "no-virtual": {"lambda_virtual": 0.0},
     "no-random-background": {"random_background": False},
+    "no-empty-space": {"dark_backdrop": False, "lambda_empty": 0.0},
+    "no-opacity-decay": {"opacity_decay": 1.0},
     "anisotropy": {"lambda_anisotropy": 0.01},
     "smooth": {"lambda_smooth": 0.1},
 }
 LANGUAGE_CASES = ("no-lop", "per-gaussian", "baseline")
 DEPTH_CASES = ("no-lad", "no-depth", "depth-init")
-BACKGROUND_CASES = ("no-random-background",)  # only scenes without alpha draw a random background
-DEFAULT_CASES = (
+EMPTY_CASES = ("no-empty-space",)  # only scenes whose photos show empty space (alpha, a black backdrop)
+# The sparse-view set: each of the geometry switches off in turn.
+GEOMETRY_CASES = (
     "full",
-    "no-lop",
-    "no-lad",
-    "no-depth",
-    "per-gaussian",
     "random-init",
     "no-dropout",
     "no-virtual",
     "no-random-background",
+    "no-empty-space",
+    "no-opacity-decay",
 )
-GEOMETRY_CASES = ("full", "random-init", "no-dropout", "no-virtual", "no-random-background")
+DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian", *GEOMETRY_CASES[1:])
 
 
 def run_case(
@@ -129,20 +132,20 @@ def run_ablation(
     has_language = base.language is not False and all(scene.feature_paths(n) is not None for n in names)
     has_depth = base.depth is not False and all(scene.depth_path(n) is not None for n in names)
     # A case that would train `full` again: it needs what the scene lacks (language features, depth
-    # priors, a background of its own to replace), or it changes nothing from `base`.
-    photos_have_background = scene.background is None
+    # priors, empty space in its photos), or it changes nothing from `base`.
+    shows_empty_space = empty_space(scene, base)[1] is not None
     skipped = [
         c
         for c in cases
         if (c in LANGUAGE_CASES and not has_language)
         or (c in DEPTH_CASES and not has_depth)
-        or (c in BACKGROUND_CASES and not photos_have_background)
+        or (c in EMPTY_CASES and not shows_empty_space)
         or (c != "full" and replace(base, **CASES[c]) == base)
     ]
     if skipped:
         warnings.warn(
             f"{scene.root}: cases {skipped} would train full again here (the scene lacks language "
-            "features, depth priors or an opaque background, or the base settings already have them); "
+            "features, depth priors or empty space in its photos, or the base settings already have them); "
             "skipped",
             stacklevel=2,
         )

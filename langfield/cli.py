@@ -110,6 +110,9 @@ SPARSE_VIEW_FLAGS = (
     "virtual_baseline",
     "virtual_directions",
     "random_background",
+    "dark_backdrop",
+    "lambda_empty",
+    "opacity_decay",
     "lambda_smooth",
     "lambda_anisotropy",
 )
@@ -366,7 +369,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--random-background",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="a random background colour each iteration on scenes without alpha",
+        help="a random background colour behind the Gaussians each iteration",
+    )
+    p.add_argument(
+        "--dark-backdrop",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="treat a photo's black backdrop (tall dark regions at the border, DTU's) as empty space",
+    )
+    p.add_argument(
+        "--lambda-empty",
+        type=float,
+        default=None,
+        help="weight of the rendered alpha on the empty space the photos show (alpha, a black backdrop)",
+    )
+    p.add_argument(
+        "--opacity-decay",
+        type=float,
+        default=None,
+        help="every opacity times this factor each iteration (Binocular-guided 3DGS: 0.995; 1: off)",
     )
     p.add_argument(
         "--lambda-smooth", type=float, default=None, help="weight of edge-aware depth smoothness (0: off)"
@@ -410,8 +431,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, baseline, "
         "no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, no-virtual, no-random-background, "
-        "anisotropy, smooth (default: full, no-lop, no-lad, no-depth, per-gaussian, random-init, no-dropout, "
-        "no-virtual, no-random-background; those a scene cannot use skipped)",
+        "no-empty-space, no-opacity-decay, anisotropy, smooth (default: full, no-lop, no-lad, no-depth, "
+        "per-gaussian, random-init, no-dropout, no-virtual, no-random-background, no-empty-space, "
+        "no-opacity-decay; those a scene cannot use skipped)",
     )
     _add_scene_flags(p)
     p.set_defaults(func=cmd_ablate)

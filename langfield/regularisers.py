@@ -17,6 +17,13 @@
 - Anisotropy penalty: needle-thin Gaussians fit a training view with a streak that crosses every other
   view (the Blender lego far views); max scale / min scale above ``ratio`` is penalised
   (PhysGaussian's anisotropy regulariser, Xie et al., CVPR 2024, eq. 9).
+- Empty space the photos show: where an image has alpha its background is no surface, and where a
+  photo has a black backdrop (DTU's unlit studio) the backdrop is none either. Three views leave that
+  backdrop free to be painted by opaque black Gaussians anywhere on its rays, and from a new angle they
+  stand in front of the object. :func:`dark_backdrop` finds it from the image alone, with the rule
+  DNGaussian (Li et al., CVPR 2024) and Binocular-guided 3DGS use on DTU: the brightest channel below
+  30/255 over a vertical run of a sixth of the image height; here also only where the run's region
+  touches the image border, so a dark object inside the frame stays a surface.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ from langfield.camera import Camera
 
 __all__ = [
     "anisotropy_loss",
+    "dark_backdrop",
     "depth_smoothness",
     "drop_compensation",
     "shifted_camera",
@@ -39,6 +47,39 @@ __all__ = [
     "virtual_view_warp",
     "z_depth",
 ]
+
+
+def dark_backdrop(image: np.ndarray, threshold: float = 30 / 255, run: float = 1 / 6) -> np.ndarray:
+    """[H, W] bool: the pixels of a photo's black backdrop (module docstring).
+
+    A pixel is backdrop when its brightest channel is below ``threshold`` and so is every pixel above
+    it for ``run`` times the image height (or up to the top row), and its 4-connected region of such
+    pixels touches the image border.
+
+    Args:
+        image: [H, W, 3] RGB in [0, 1].
+        threshold: brightest-channel value below which a pixel is dark.
+        run: length of the dark vertical run, as a fraction of the height (at least one pixel).
+    """
+    import cv2
+
+    dark = np.asarray(image).max(axis=-1) < threshold
+    height = dark.shape[0]
+    need = max(1, round(run * height))
+    length = np.zeros(dark.shape, np.int32)  # dark pixels ending at each row, counted from above
+    length[0] = dark[0]
+    for row in range(1, height):
+        length[row] = np.where(dark[row], length[row - 1] + 1, 0)
+    rows = np.arange(height)[:, None]
+    backdrop = dark & (length >= np.minimum(need, rows + 1))
+    if not backdrop.any():
+        return backdrop
+    count, labels = cv2.connectedComponents(backdrop.astype(np.uint8), connectivity=4)
+    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    touching = np.zeros(count, bool)
+    touching[edge] = True
+    touching[0] = False  # label 0: not backdrop
+    return touching[labels]
 
 
 def drop_compensation(n: int, rate: float, generator: torch.Generator) -> Tensor:

@@ -172,8 +172,8 @@ def test_every_ablation_case_changes_the_defaults():
 def test_cases_that_would_train_full_again_are_skipped(room):
     from langfield.ablate import run_ablation
 
-    base = TrainConfig(iterations=1, num_gaussians=100, init="random", lop=False)
-    # The room's images have alpha (no background to replace); base already has lop=False.
+    base = TrainConfig(iterations=1, num_gaussians=100, init="random", lop=False, random_background=False)
+    # The base already has both changes.
     with pytest.warns(UserWarning, match=r"no-random-background.*no-lop|no-lop.*no-random-background"):
         rows = run_ablation(
             load_scene(room), base, ("full", "no-random-background", "no-lop"), progress=False

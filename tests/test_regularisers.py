@@ -10,6 +10,7 @@ import langfield as lf
 from langfield.camera import Camera
 from langfield.regularisers import (
     anisotropy_loss,
+    dark_backdrop,
     depth_smoothness,
     drop_compensation,
     shifted_camera,
@@ -178,11 +179,13 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
     out = tmp_path / "out"
     flags = ["--drop-gamma", "0.3", "--lambda-virtual", "0.5", "--virtual-baseline", "0.25"]
     flags += ["--no-random-background", "--lambda-smooth", "0.01", "--lambda-anisotropy", "0.02"]
+    flags += ["--no-dark-backdrop", "--lambda-empty", "0.5", "--opacity-decay", "0.99"]
     argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
     assert main([*argv, "--init", "random", *flags]) == 0
     recorded = json.loads((out / "field.json").read_text())["config"]
     expected = {"drop_gamma": 0.3, "lambda_virtual": 0.5, "virtual_baseline": 0.25}
     expected.update(random_background=False, lambda_smooth=0.01, lambda_anisotropy=0.02)
+    expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99)
     assert {k: recorded[k] for k in expected} == expected
     assert main([*argv, "--force", "--random-background"]) == 0
     assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
@@ -237,7 +240,62 @@ def test_a_bad_refiner_folder_stops_training_before_work(scene, tmp_path) -> Non
         lf.train(scene, lf.TrainConfig(iterations=2, refiner=str(tmp_path / "missing")), progress=False)
 
 
-def test_random_background_trains_differently_only_without_alpha(tmp_path) -> None:
+def test_dark_backdrop_is_a_tall_dark_region_at_the_border() -> None:
+    image = np.full((60, 80, 3), 0.8, np.float32)
+    image[:20] = 0.02  # a black backdrop along the top: a run of 20 rows, a third of the height
+    image[30:55, 30:50] = 0.0  # a black object inside the frame: tall enough, but not at the border
+    image[50:53, :10] = 0.0  # a dark strip at the border, 3 rows: too short a run
+    backdrop = dark_backdrop(image)
+    assert backdrop[:20].all() and backdrop[20:].sum() == 0
+    assert not dark_backdrop(np.full((60, 80, 3), 0.5, np.float32)).any()
+    assert dark_backdrop(np.zeros((60, 80, 3), np.float32)).all()  # all black: all backdrop
+    assert dark_backdrop(np.zeros((1, 1, 3), np.float32)).all()  # one pixel
+    brighter = image.copy()
+    brighter[:20, :, 1] = 0.2  # one channel above 30/255: not dark
+    assert not dark_backdrop(brighter).any()
+
+
+def test_empty_space_comes_from_alpha_or_a_dark_backdrop(tmp_path) -> None:
+    import cv2
+
+    from langfield.trainer import empty_space
+
+    root = make_room(tmp_path / "room", seed=0, width=40, height=30, n_test=1)
+    with_alpha = lf.load_scene(root)
+    coverage, source = empty_space(with_alpha, lf.TrainConfig())
+    assert source == "alpha" and set(coverage) == set(with_alpha.names("train"))
+    for name, c in coverage.items():
+        np.testing.assert_array_equal(c.numpy(), with_alpha.alpha(name))
+    for path in (root / "images").glob("*.png"):
+        opaque = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if path.stem == "train_000":
+            opaque[:10] = 0  # a black backdrop along the top of one view
+        cv2.imwrite(str(path), opaque)
+    photos = lf.load_scene(root)
+    coverage, source = empty_space(photos, lf.TrainConfig())
+    assert source == "dark backdrop" and list(coverage) == ["train_000"]
+    assert (coverage["train_000"][:10] == 0).all() and coverage["train_000"][10:].mean() > 0.9
+    assert empty_space(photos, lf.TrainConfig(dark_backdrop=False)) == ({}, None)
+
+
+def test_backdrop_target_replaces_only_the_empty_part() -> None:
+    from langfield.trainer import backdrop_target
+
+    colour = torch.tensor([0.2, 0.5, 0.9])
+    rgb = torch.rand(6, 5, 3)
+    alpha = torch.rand(6, 5)
+    white = torch.ones(3)
+    composited = rgb * alpha[..., None] + (1 - alpha[..., None]) * white  # as an RGBA image is read
+    torch.testing.assert_close(
+        backdrop_target(composited, alpha, white, colour),
+        rgb * alpha[..., None] + (1 - alpha[..., None]) * colour,
+    )
+    torch.testing.assert_close(backdrop_target(composited, alpha, white, white), composited)
+    surface = torch.ones(6, 5)
+    torch.testing.assert_close(backdrop_target(rgb, surface, rgb, colour), rgb)  # nothing empty: unchanged
+
+
+def test_random_background_only_without_alpha_and_the_empty_space_term_change_training(tmp_path) -> None:
     import cv2
 
     root = make_room(tmp_path / "room", seed=0, width=40, height=30, n_test=1)
@@ -246,6 +304,11 @@ def test_random_background_trains_differently_only_without_alpha(tmp_path) -> No
     a = lf.train(with_alpha, lf.TrainConfig(**base, random_background=False), progress=False)
     b = lf.train(with_alpha, lf.TrainConfig(**base, random_background=True), progress=False)
     assert torch.equal(a.splats["means"], b.splats["means"])  # RGBA scenes keep their white background
+    e = lf.train(
+        with_alpha, lf.TrainConfig(**base, random_background=False, lambda_empty=0.0), progress=False
+    )
+    assert not torch.equal(a.splats["means"], e.splats["means"])
+    assert a.meta["empty_space"]["source"] == "alpha"
     for path in (root / "images").glob("*.png"):
         cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_COLOR))  # drop the alpha channel
     opaque = lf.load_scene(root)
@@ -253,3 +316,18 @@ def test_random_background_trains_differently_only_without_alpha(tmp_path) -> No
     c = lf.train(opaque, lf.TrainConfig(**base, random_background=False), progress=False)
     d = lf.train(opaque, lf.TrainConfig(**base, random_background=True), progress=False)
     assert not torch.equal(c.splats["means"], d.splats["means"])
+    assert c.meta["empty_space"] == {"source": None, "fraction": {}}
+
+
+def test_opacity_decay_fades_the_gaussians_from_refine_start(scene) -> None:
+    base = dict(
+        iterations=4, num_gaussians=300, init="random", language=False, depth=False, densify=False,
+        lambda_opacity=0.0, refine_start=1,
+    )  # fmt: skip
+    plain = lf.train(scene, lf.TrainConfig(**base, opacity_decay=1.0), progress=False)
+    decayed = lf.train(scene, lf.TrainConfig(**base, opacity_decay=0.5), progress=False)
+    ratio = float(lf.gaussians.opacities(decayed.splats).mean() / lf.gaussians.opacities(plain.splats).mean())
+    # Three decayed iterations (1, 2, 3) halve every opacity three times; Adam moves a logit by ~lr.
+    assert 0.125 * 0.7 < ratio < 0.125 * 1.4
+    with pytest.raises(ValueError, match="opacity_decay"):
+        lf.TrainConfig(opacity_decay=0.0)
