@@ -4,7 +4,8 @@
 1. forward+backward milliseconds of each backend on one scene (median of repeats; the image error of
    each backend against ``torch``);
 2. a training curve on the built-in scene (or ``--scene``): novel-view PSNR at checkpoints against
-   training wall time and Gaussian count.
+   training wall time and Gaussian count, and from it the time to quality (:func:`time_to_quality`),
+   the iterations per second over the run and the process's peak memory.
 The JSON keys are fixed by FORMAT.md.
 """
 
@@ -101,6 +102,38 @@ def training_curve(
         callback_every=every,
     )
     return points
+
+
+def time_to_quality(points: list[dict], tolerance_db: float = 0.3) -> dict[str, Any] | None:
+    """Training time until novel-view PSNR first comes within ``tolerance_db`` of the run's last point.
+
+    The last point stands for the converged run, so the figure is as good as the run is long: a curve
+    still rising at its end understates the time. Also the iterations per second over the whole run.
+    None for a curve without PSNR.
+
+    Returns:
+        {"reference_PSNR", "tolerance_dB", "seconds", "iterations", "iterations_per_second"}.
+    """
+    scored = [p for p in points if p.get("PSNR") is not None]
+    if not scored:
+        return None
+    reference = scored[-1]["PSNR"]
+    first = next(p for p in scored if p["PSNR"] >= reference - tolerance_db)
+    last = points[-1]
+    return {
+        "reference_PSNR": reference,
+        "tolerance_dB": tolerance_db,
+        "seconds": first["seconds"],
+        "iterations": first["iterations"],
+        "iterations_per_second": last["iterations"] / last["seconds"] if last["seconds"] > 0 else None,
+    }
+
+
+def peak_memory_mib() -> float:
+    """The process's peak resident memory so far, MiB (Linux's ru_maxrss is in KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def query_latency(field, scene: Scene, repeats: int = 3) -> dict[str, float]:
@@ -247,6 +280,14 @@ def format_table(result: dict) -> str:
             lines.append(
                 f"  {p['iterations']:10d} {p['seconds']:9.1f} {psnr_txt} {miou_txt} {p['num_gaussians']:11d}"
             )
+        quality = (result.get("time_to_quality") or {}).get(label)
+        if quality:
+            lines.append(
+                f"  within {quality['tolerance_dB']} dB of the last point "
+                f"({quality['reference_PSNR']:.2f} dB) "
+                f"after {quality['seconds']:.1f} s ({quality['iterations']} iterations); "
+                f"{quality['iterations_per_second']:.2f} iterations/s over the run"
+            )
         latency = points[-1].get("query_ms_per_view")
         if latency:
             lines.append(
@@ -254,6 +295,8 @@ def format_table(result: dict) -> str:
                 f"{latency['ms']:.0f} ms per view "
                 f"(first view, lattice included: {latency['first_view_ms']:.0f} ms)"
             )
+    if result.get("peak_memory_mib"):
+        lines.append(f"peak memory of the process: {result['peak_memory_mib']:.0f} MiB")
     return "\n".join(lines)
 
 
@@ -300,6 +343,8 @@ def run_bench(
     result["curves"] = {f"{cam.width}x{cam.height}": result["curve"]}
     for label, other in (extra_scenes or {}).items():  # other resolutions of the same scene
         result["curves"][label] = training_curve(other, iterations, every, seed) if iterations > 0 else []
+    result["time_to_quality"] = {label: time_to_quality(points) for label, points in result["curves"].items()}
+    result["peak_memory_mib"] = peak_memory_mib()
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(result, indent=2))

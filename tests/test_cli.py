@@ -192,7 +192,30 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     assert list(result["curves"]) == [f"{W}x{H}", f"{W // 2}x{H // 2}"]
     assert all(0 <= p["mIoU"] <= 1 for c in result["curves"].values() for p in c)  # the room is labelled
     assert result["curve"][-1]["query_ms_per_view"]["ms"] > 0
-    assert "faster than torch" in capsys.readouterr().out
+    quality = result["time_to_quality"][f"{W}x{H}"]
+    assert quality["reference_PSNR"] == result["curve"][-1]["PSNR"] and quality["iterations"] in (10, 20)
+    assert quality["iterations_per_second"] == pytest.approx(20 / result["curve"][-1]["seconds"])
+    assert result["peak_memory_mib"] > 50
+    printed = capsys.readouterr().out
+    assert "faster than torch" in printed and "within 0.3 dB of the last point" in printed
+
+
+def test_time_to_quality_is_the_first_point_within_the_tolerance_of_the_last() -> None:
+    from langfield.bench import time_to_quality
+
+    curve = [
+        {"seconds": 10.0, "iterations": 100, "PSNR": 15.0},
+        {"seconds": 20.0, "iterations": 200, "PSNR": 19.8},  # within 0.3 dB of 20.0
+        {"seconds": 30.0, "iterations": 300, "PSNR": 20.4},  # above the last: a peak, then a fall
+        {"seconds": 40.0, "iterations": 400, "PSNR": 20.0},
+    ]
+    quality = time_to_quality(curve)
+    assert (quality["seconds"], quality["iterations"], quality["reference_PSNR"]) == (20.0, 200, 20.0)
+    assert quality["iterations_per_second"] == 10.0
+    assert time_to_quality(curve, tolerance_db=0.0)["iterations"] == 300
+    assert time_to_quality(curve[:1])["iterations"] == 100  # one point: its own reference
+    assert time_to_quality([{"seconds": 1.0, "iterations": 5, "PSNR": None}]) is None
+    assert time_to_quality([]) is None
 
 
 def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
