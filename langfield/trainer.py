@@ -600,8 +600,6 @@ def train(
         "source": source,
         "fraction": {name: round(float(1.0 - c.mean()), 4) for name, c in coverage.items()},
     }
-    # What lies behind each view's empty space in its image: white for RGBA images, the backdrop itself else.
-    under = images if scene.background is None else dict.fromkeys(train_names, field.background)
     rng = np.random.default_rng(cfg.seed)
     drop_generator = torch.Generator().manual_seed(cfg.seed)
     order: list[str] = []
@@ -625,9 +623,8 @@ def train(
         if cfg.random_background and scene.background is None:
             behind = torch.rand(3, generator=drop_generator)
         target = images[name]
-        if cover is not None:
-            colour = field.background if behind is None else behind
-            target = backdrop_target(images[name], cover, under[name], colour)
+        if cover is not None and behind is not None:  # a photo's backdrop shows the random colour
+            target = backdrop_target(images[name], cover, behind)
         out = field.render(
             cameras[name],
             backend=cfg.backend,
@@ -710,11 +707,11 @@ def train(
     return field
 
 
-def backdrop_target(image: Tensor, coverage: Tensor, under: Tensor, colour: Tensor) -> Tensor:
-    """The training target with ``colour`` behind its empty space: ``image`` [H, W, 3] shows ``under``
-    ([3] or [H, W, 3]) there, in proportion 1 - ``coverage`` [H, W]; that part is replaced."""
-    empty = (1.0 - coverage)[..., None]
-    return image - empty * under + empty * colour
+def backdrop_target(image: Tensor, coverage: Tensor, colour: Tensor) -> Tensor:
+    """The training target [H, W, 3] with ``colour`` [3] behind a photo's empty space: ``image`` where
+    ``coverage`` [H, W] is 1, ``colour`` where it is 0 (the backdrop's own near-black replaced)."""
+    cover = coverage[..., None]
+    return image * cover + (1.0 - cover) * colour
 
 
 def empty_space(scene: Scene, cfg: TrainConfig) -> tuple[dict[str, Tensor], str | None]:

@@ -283,16 +283,14 @@ def test_backdrop_target_replaces_only_the_empty_part() -> None:
 
     colour = torch.tensor([0.2, 0.5, 0.9])
     rgb = torch.rand(6, 5, 3)
-    alpha = torch.rand(6, 5)
-    white = torch.ones(3)
-    composited = rgb * alpha[..., None] + (1 - alpha[..., None]) * white  # as an RGBA image is read
-    torch.testing.assert_close(
-        backdrop_target(composited, alpha, white, colour),
-        rgb * alpha[..., None] + (1 - alpha[..., None]) * colour,
-    )
-    torch.testing.assert_close(backdrop_target(composited, alpha, white, white), composited)
+    backdrop = torch.zeros(6, 5, dtype=torch.bool)
+    backdrop[:2] = True  # the top two rows are the backdrop
+    coverage = (~backdrop).float()
+    target = backdrop_target(rgb, coverage, colour)
+    torch.testing.assert_close(target[:2], colour.expand(2, 5, 3))
+    torch.testing.assert_close(target[2:], rgb[2:])
     surface = torch.ones(6, 5)
-    torch.testing.assert_close(backdrop_target(rgb, surface, rgb, colour), rgb)  # nothing empty: unchanged
+    torch.testing.assert_close(backdrop_target(rgb, surface, colour), rgb)  # nothing empty: unchanged
 
 
 def test_random_background_only_without_alpha_and_the_empty_space_term_change_training(tmp_path) -> None:
