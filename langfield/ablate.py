@@ -105,7 +105,8 @@ def run_case(
         "floaters": None if floaters is None else floaters["floaters"],
         "depth_agreement": None if agreement is None else agreement["agreement"],
         "train_seconds": field.meta["train_seconds"],
-        "ms_per_iteration": 1000 * field.meta["train_seconds"] / max(cfg.iterations, 1),
+        "iterations": field.meta["iterations"],
+        "ms_per_iteration": 1000 * field.meta["train_seconds"] / max(field.meta["iterations"], 1),
         "num_gaussians": field.num_gaussians,
         "lop_removed": sum(r["removed"] for r in field.meta.get("lop") or []),
     }
@@ -187,9 +188,14 @@ def format_table(rows: dict[str, dict]) -> str:
 
 
 def write_table(rows: dict[str, dict], out: Path, base: TrainConfig) -> None:
-    meta = {"iterations": base.iterations, "seed": base.seed, "rows": rows}
+    lengths = sorted({r["iterations"] for r in rows.values() if "iterations" in r})
+    iterations = base.iterations
+    if iterations is None and len(lengths) == 1:  # scene-sized: every case ran the same length
+        iterations = lengths[0]
+    meta = {"iterations": iterations, "seed": base.seed, "rows": rows}
     with atomic_path(out / "ablation.json") as tmp:
         tmp.write_text(json.dumps(meta, indent=2) + "\n")
     with atomic_path(out / "ablation.md") as tmp:
-        title = f"# Ablation ({base.iterations} iterations, seed {base.seed})"
+        sized = "" if base.iterations is not None else ", sized by the scene"
+        title = f"# Ablation ({iterations} iterations{sized}, seed {base.seed})"
         tmp.write_text(f"{title}\n\n{format_table(rows)}\n")

@@ -25,7 +25,7 @@ from langfield.camera import Camera
 from langfield.evaluate import evaluate
 from langfield.raster import BACKENDS, rasterize
 from langfield.scene import Scene
-from langfield.trainer import TrainConfig, evaluate_psnr, train
+from langfield.trainer import TrainConfig, evaluate_psnr, train, training_length
 
 
 def backend_step_ms(
@@ -71,14 +71,125 @@ def backend_step_ms(
     return results
 
 
+# Arithmetic of one Gaussian-pixel pair with C channels, counted as the kernels do it: the offset
+# and the conic's quadratic form (8), alpha and the transmittance update (4), one multiply-add per
+# channel; the backward pass redoes the forward's share and adds the chain rule for each channel and
+# the five geometry gradients (means2d, conic, opacity), about twice the forward's count.
+def pair_flops(channels: int) -> int:
+    """Floating-point operations of one Gaussian-pixel pair, forward + backward (the exp counted as one)."""
+    forward = 12 + 2 * channels
+    return 3 * forward
+
+
+def cpu_peak_gflops() -> dict[str, Any]:
+    """An estimate of this machine's fp32 FMA peak: cores x clock x SIMD lanes x 2 FMA units x 2.
+
+    The lanes come from /proc/cpuinfo's flags (16 with AVX-512, 8 with AVX2, else 4), the clock from
+    its "cpu MHz" (the base clock a VM reports; boost clocks are higher), the cores from the CPUs this
+    process may run on. Two FMA units per core is an assumption (true of current x86 server cores).
+    """
+    import os
+
+    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    flags = set(next((ln.split(":", 1)[1].split() for ln in text.splitlines() if ln.startswith("flags")), []))
+    mhz = [float(ln.split(":", 1)[1]) for ln in text.splitlines() if ln.startswith("cpu MHz")]
+    lanes = 16 if "avx512f" in flags else 8 if "avx2" in flags else 4
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    ghz = (max(mhz) / 1000.0) if mhz else None
+    peak = cores * ghz * lanes * 2 * 2 if ghz else None
+    return {"cores": cores, "ghz": ghz, "fp32_lanes": lanes, "fma_units": 2, "gflops": peak}
+
+
+def tile_pairs(offsets: torch.Tensor, width: int, height: int) -> int:
+    """Gaussian-pixel pairs the compositor visits: each tile's list length x its pixel count."""
+    from langfield.raster.binning import TILE_SIZE
+
+    tiles_x = -(-width // TILE_SIZE)
+    tiles_y = -(-height // TILE_SIZE)
+    tx = torch.arange(tiles_x)
+    ty = torch.arange(tiles_y)
+    w = torch.clamp(width - tx * TILE_SIZE, max=TILE_SIZE)
+    h = torch.clamp(height - ty * TILE_SIZE, max=TILE_SIZE)
+    pixels = (h[:, None] * w[None, :]).reshape(-1)
+    counts = (offsets[1:] - offsets[:-1]).reshape(-1)
+    return int((counts * pixels).sum())
+
+
+def raster_throughput(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    camera: Camera,
+    channels: int = 13,
+    backend: str = "cpu",
+    repeats: int = 3,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Forward + backward of :func:`rasterize` on these Gaussians with ``channels`` random feature
+    channels: Gaussian-pixel pairs per second beside :func:`cpu_peak_gflops`.
+
+    Pairs are those in the tile lists (:func:`tile_pairs`); a pixel whose transmittance is spent stops
+    early, so the kernels evaluate at most that many. ``fraction_of_peak`` is the pairs' arithmetic
+    (:func:`pair_flops`) per second over the FMA peak: how far the kernels are from the machine.
+    """
+    from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
+
+    with torch.no_grad():
+        projected = project_gaussians_cpu(
+            means, quats, scales, camera.world_to_camera(), camera.intrinsics(), camera.width, camera.height
+        )
+        offsets, _ = bin_gaussians_cpu(
+            projected.means2d,
+            projected.radii,
+            projected.conics,
+            opacities,
+            projected.depths,
+            camera.width,
+            camera.height,
+        )
+    pairs = tile_pairs(offsets, camera.width, camera.height)
+    g = torch.Generator().manual_seed(seed)
+    feats = torch.rand(means.shape[0], channels, generator=g)
+    weights = torch.randn(camera.height, camera.width, channels, generator=g)
+    base = [t.detach() for t in (means, quats, scales, opacities.reshape(-1), feats)]
+    times = []
+    for i in range(repeats + 1):  # the first call compiles / warms caches
+        leaves = [t.clone().requires_grad_(True) for t in base]
+        t0 = time.perf_counter()
+        out = rasterize(*leaves, camera, backend=backend)
+        (out.image * weights).sum().backward()
+        if i > 0:
+            times.append(time.perf_counter() - t0)
+    seconds = statistics.median(times)
+    peak = cpu_peak_gflops()
+    rate = pairs / seconds if seconds > 0 else None
+    achieved = rate * pair_flops(channels) / 1e9 if rate else None
+    return {
+        "backend": backend,
+        "num_gaussians": int(means.shape[0]),
+        "width": camera.width,
+        "height": camera.height,
+        "channels": channels,
+        "pairs": pairs,
+        "step_ms": 1000 * seconds,
+        "pairs_per_second": rate,
+        "flops_per_pair": pair_flops(channels),
+        "achieved_gflops": achieved,
+        "peak": peak,
+        "fraction_of_peak": achieved / peak["gflops"] if achieved and peak["gflops"] else None,
+    }
+
+
 def training_curve(
-    scene: Scene, iterations: int, every: int, seed: int = 0, backend: str = "auto"
+    scene: Scene, iterations: int | None, every: int, seed: int = 0, backend: str = "auto"
 ) -> list[dict]:
     """Trains once and records novel-view PSNR, mIoU (labelled scenes) and Gaussian count.
 
     A point every ``every`` iterations and at the end; evaluation time is not training time. The
     last point also carries the query latency (see :func:`query_latency`).
     """
+    iterations = training_length(iterations, len(scene.names("train")))["iterations"]
     points: list[dict[str, Any]] = []
     labelled = any(scene.segmentations(n) for n in scene.names("test"))
 
@@ -92,6 +203,11 @@ def training_curve(
         point["num_gaussians"] = field.num_gaussians
         if step == iterations and labelled and field.has_language:
             point["query_ms_per_view"] = query_latency(field, scene)
+        if step == iterations:  # the rasterizer on the Gaussians training ended with
+            sp = field.splats
+            point["raster"] = raster_throughput(
+                sp["means"], sp["quats"], G.scales(sp), G.opacities(sp), scene.cameras("train")[0]
+            )
         points.append(point)
 
     train(
@@ -288,6 +404,9 @@ def format_table(result: dict) -> str:
                 f"after {quality['seconds']:.1f} s ({quality['iterations']} iterations); "
                 f"{quality['iterations_per_second']:.2f} iterations/s over the run"
             )
+        raster = points[-1].get("raster")
+        if raster:
+            lines.append(format_throughput(raster))
         latency = points[-1].get("query_ms_per_view")
         if latency:
             lines.append(
@@ -300,10 +419,28 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def format_throughput(r: dict) -> str:
+    """One line: the rasterizer's pairs per second on the trained Gaussians against the FMA peak."""
+    peak = r["peak"]
+    peak_txt = (
+        f"{peak['gflops']:.0f} GFLOP/s fp32 FMA peak ({peak['cores']} cores x {peak['ghz']:.2f} GHz x "
+        f"{peak['fp32_lanes']} lanes x {peak['fma_units']} FMA units x 2)"
+        if peak["gflops"]
+        else "no FMA peak estimate (no clock in /proc/cpuinfo)"
+    )
+    frac = f", {100 * r['fraction_of_peak']:.1f} % of the peak" if r.get("fraction_of_peak") else ""
+    return (
+        f"  rasterizer ({r['backend']}, forward+backward) on the {r['num_gaussians']} trained Gaussians at "
+        f"{r['width']}x{r['height']}: {r['pairs'] / 1e6:.1f} M Gaussian-pixel pairs in {r['step_ms']:.0f} ms "
+        f"= {r['pairs_per_second'] / 1e6:.1f} M pairs/s x {r['flops_per_pair']} FLOP = "
+        f"{r['achieved_gflops']:.1f} GFLOP/s against {peak_txt}{frac}"
+    )
+
+
 def run_bench(
     scene: Scene,
     *,
-    iterations: int,
+    iterations: int | None,
     every: int,
     num_gaussians: int = 20000,
     channels: int = 13,
@@ -338,11 +475,11 @@ def run_bench(
         if has_language and has_depth and overhead_iterations > 0
         else None
     )
-    result["curve"] = training_curve(scene, iterations, every, seed) if iterations > 0 else []
+    result["curve"] = training_curve(scene, iterations, every, seed) if iterations != 0 else []
     cam = scene.cameras("train")[0]
     result["curves"] = {f"{cam.width}x{cam.height}": result["curve"]}
     for label, other in (extra_scenes or {}).items():  # other resolutions of the same scene
-        result["curves"][label] = training_curve(other, iterations, every, seed) if iterations > 0 else []
+        result["curves"][label] = training_curve(other, iterations, every, seed) if iterations != 0 else []
     result["time_to_quality"] = {label: time_to_quality(points) for label, points in result["curves"].items()}
     result["peak_memory_mib"] = peak_memory_mib()
     if json_path is not None:

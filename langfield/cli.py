@@ -109,6 +109,7 @@ SPARSE_VIEW_FLAGS = (
     "lambda_virtual",
     "virtual_baseline",
     "virtual_directions",
+    "virtual_every",
     "random_background",
     "dark_backdrop",
     "lambda_empty",
@@ -147,9 +148,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, **_scene_args(args))
     rows = run_ablation(scene, base, cases, out_dir=args.out, overwrite=args.force)
     print(format_table(rows))
-    print(
-        f"ablation of {len(rows)} cases, {args.iterations} iterations each; table in {args.out}/ablation.md"
-    )
+    length = next(iter(rows.values()), {}).get("iterations", 0)
+    print(f"ablation of {len(rows)} cases, {length} iterations each; table in {args.out}/ablation.md")
     return 0
 
 
@@ -251,14 +251,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from langfield.evaluate import evaluate, write_report
     from langfield.scene import load_scene
     from langfield.synthetic import make_room
-    from langfield.trainer import TrainConfig, summary_line, train
+    from langfield.trainer import TrainConfig, summary_line, train, training_length
 
     out = Path(args.out)
     t0 = time.perf_counter()
     scene_dir = make_room(out / "scene", seed=args.seed, width=args.width, height=args.height)
     print(f"[1/5] built-in scene written to {scene_dir}")
     scene = load_scene(scene_dir)
-    print(f"[2/5] training on {len(scene.names('train'))} views ({args.iterations} iterations)")
+    length = training_length(args.iterations, len(scene.names("train")))["iterations"]
+    print(f"[2/5] training on {len(scene.names('train'))} views ({length} iterations)")
     field = train(scene, TrainConfig(iterations=args.iterations, seed=args.seed))
     field.meta["scene_args"] = {"resolution": 1.0, "views": None, "n_views": None}
     field.save(out / "field", overwrite=True)  # the demo's folder is its own: a rerun replaces it
@@ -304,7 +305,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--force", action="store_true", help="replace a field already in OUT (kept intact until then)"
     )
-    p.add_argument("--iterations", type=int, default=6000, help="training iterations (default 6000)")
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="training iterations (default: sized by the scene, 500 per training view in [1000, 6000])",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the start and the view order (default 0)")
     p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto", help="rasterizer backend")
     p.add_argument(
@@ -366,6 +372,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="virtual cameras shifted left or right (a stereo pair), or in any direction of the image plane",
     )
     p.add_argument(
+        "--virtual-every",
+        type=int,
+        default=None,
+        help="the virtual-view term on every n-th iteration (it renders a second view)",
+    )
+    p.add_argument(
         "--random-background",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -417,7 +429,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help="scene folder")
     p.add_argument("--out", default="ablate_out", help="folder for the fields and ablation.json/.md")
     p.add_argument("--force", action="store_true", help="replace the case fields already in OUT")
-    p.add_argument("--iterations", type=int, default=1500, help="training iterations per case (default 1500)")
+    p.add_argument(
+        "--iterations", type=int, default=None, help="iterations per case (default: sized by the scene)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of every case (default 0)")
     p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto", help="rasterizer backend")
     p.add_argument(
@@ -465,7 +479,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--json", default=None, help="result JSON (default OUT/bench.json); a PNG plot goes beside it"
     )
     p.add_argument("--out", default="bench_out", help="working folder (default bench_out)")
-    p.add_argument("--iterations", type=int, default=1500, help="training iterations of the curve (0: skip)")
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="training iterations of the curve (default: sized by the scene; 0: skip)",
+    )
     p.add_argument("--every", type=int, default=250, help="curve checkpoint interval")
     p.add_argument("--num-gaussians", type=int, default=20000, help="Gaussians of the backend timing")
     p.add_argument(
@@ -499,7 +518,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", default="demo_out", help="the demo's own folder, replaced on a rerun (default demo_out)"
     )
-    p.add_argument("--iterations", type=int, default=1500, help="training iterations (default 1500)")
+    p.add_argument(
+        "--iterations", type=int, default=None, help="training iterations (default: sized by the scene)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the scene and the training (default 0)")
     p.add_argument("--width", type=int, default=160, help="image width of the built-in scene (default 160)")
     p.add_argument("--height", type=int, default=120, help="image height of the built-in scene (default 120)")

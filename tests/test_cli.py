@@ -11,7 +11,9 @@ import shutil
 import subprocess
 
 import cv2
+import numpy as np
 import pytest
+import torch
 
 from langfield import LanguageField, load_scene
 from langfield.cli import main
@@ -196,8 +198,12 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     assert quality["reference_PSNR"] == result["curve"][-1]["PSNR"] and quality["iterations"] in (10, 20)
     assert quality["iterations_per_second"] == pytest.approx(20 / result["curve"][-1]["seconds"])
     assert result["peak_memory_mib"] > 50
+    raster = result["curve"][-1]["raster"]
+    assert raster["num_gaussians"] == result["curve"][-1]["num_gaussians"] and raster["pairs"] > 0
+    assert raster["pairs_per_second"] == pytest.approx(raster["pairs"] / (raster["step_ms"] / 1000))
     printed = capsys.readouterr().out
     assert "faster than torch" in printed and "within 0.3 dB of the last point" in printed
+    assert "Gaussian-pixel pairs" in printed
 
 
 def test_time_to_quality_is_the_first_point_within_the_tolerance_of_the_last() -> None:
@@ -216,6 +222,37 @@ def test_time_to_quality_is_the_first_point_within_the_tolerance_of_the_last() -
     assert time_to_quality(curve[:1])["iterations"] == 100  # one point: its own reference
     assert time_to_quality([{"seconds": 1.0, "iterations": 5, "PSNR": None}]) is None
     assert time_to_quality([]) is None
+
+
+def test_tile_pairs_counts_each_tiles_list_times_its_pixels() -> None:
+    from langfield.bench import tile_pairs
+
+    # 20x20 pixels: tiles of 16x16, 4x16, 16x4 and 4x4 pixels holding 1, 0, 2 and 3 Gaussians.
+    offsets = torch.tensor([0, 1, 1, 3, 6])
+    assert tile_pairs(offsets, 20, 20) == 256 + 0 + 2 * 64 + 3 * 16
+
+
+def test_raster_throughput_counts_the_pairs_the_reference_binning_lists() -> None:
+    from langfield import gaussians as G
+    from langfield.bench import cpu_peak_gflops, pair_flops, raster_throughput, tile_pairs
+    from langfield.camera import Camera
+    from langfield.raster.binning import bin_gaussians, opacity_aware_radii
+    from langfield.raster.projection import project_gaussians
+
+    cam = Camera.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), width=40, height=28)
+    sp = G.init_gaussians(np.array([[-1.0, -1, -1], [1, 1, 1]]), 200, seed=0)
+    means, quats, scales, opac = sp["means"], sp["quats"], G.scales(sp), G.opacities(sp)
+    r = raster_throughput(means, quats, scales, opac, cam, channels=5, repeats=1)
+    with torch.no_grad():
+        pr = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 28)
+        radii = opacity_aware_radii(pr.radii, pr.conics, opac.reshape(-1))
+        offsets, _ = bin_gaussians(pr.means2d, radii, pr.depths, 40, 28)
+    assert r["pairs"] == tile_pairs(offsets, 40, 28) > 0
+    assert r["flops_per_pair"] == pair_flops(5) and r["achieved_gflops"] > 0
+    peak = cpu_peak_gflops()
+    if peak["gflops"] is not None:
+        assert peak["gflops"] == pytest.approx(peak["cores"] * peak["ghz"] * peak["fp32_lanes"] * 4)
+        assert r["fraction_of_peak"] == pytest.approx(r["achieved_gflops"] / peak["gflops"])
 
 
 def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:

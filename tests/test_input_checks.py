@@ -138,6 +138,7 @@ def test_an_interrupted_save_keeps_the_old_field(scene_dir, field_dir, tmp_path,
         (["--lambda-anisotropy", "-0.1"], "--lambda-anisotropy"),
         (["--lambda-empty", "-1"], "--lambda-empty"),
         (["--opacity-decay", "1.5"], "--opacity-decay"),
+        (["--virtual-every", "0"], "--virtual-every"),
     ],
 )
 def test_bad_flag_values_exit_2_naming_the_flag(scene_dir, tmp_path, capsys, no_work, flags, named) -> None:

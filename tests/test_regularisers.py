@@ -179,16 +179,46 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
     out = tmp_path / "out"
     flags = ["--drop-gamma", "0.3", "--lambda-virtual", "0.5", "--virtual-baseline", "0.25"]
     flags += ["--no-random-background", "--lambda-smooth", "0.01", "--lambda-anisotropy", "0.02"]
-    flags += ["--no-dark-backdrop", "--lambda-empty", "0.5", "--opacity-decay", "0.99"]
+    flags += [
+        "--no-dark-backdrop",
+        "--lambda-empty",
+        "0.5",
+        "--opacity-decay",
+        "0.99",
+        "--virtual-every",
+        "3",
+    ]
     argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
     assert main([*argv, "--init", "random", *flags]) == 0
     recorded = json.loads((out / "field.json").read_text())["config"]
     expected = {"drop_gamma": 0.3, "lambda_virtual": 0.5, "virtual_baseline": 0.25}
     expected.update(random_background=False, lambda_smooth=0.01, lambda_anisotropy=0.02)
-    expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99)
+    expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99, virtual_every=3)
     assert {k: recorded[k] for k in expected} == expected
     assert main([*argv, "--force", "--random-background"]) == 0
     assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
+
+
+@pytest.mark.parametrize(("every", "start", "steps"), [(1, 0, 7), (3, 0, 3), (2, 2, 3), (10, 0, 1)])
+def test_virtual_term_runs_on_every_nth_iteration_from_its_start(
+    scene, monkeypatch, every, start, steps
+) -> None:
+    from langfield import trainer as T
+
+    calls = []
+    real = T._virtual_view_loss
+    monkeypatch.setattr(T, "_virtual_view_loss", lambda *a, **k: calls.append(1) or real(*a, **k))
+    cfg = lf.TrainConfig(
+        iterations=7,
+        num_gaussians=200,
+        init="random",
+        language=False,
+        depth=False,
+        virtual_every=every,
+        virtual_start=start,
+    )
+    lf.train(scene, cfg, progress=False)
+    assert len(calls) == steps
 
 
 def test_dropout_changes_training_and_rendering_uses_every_gaussian(scene) -> None:
@@ -205,7 +235,8 @@ def test_dropout_changes_training_and_rendering_uses_every_gaussian(scene) -> No
 
 
 @pytest.mark.parametrize(
-    ("key", "value"), [("drop_gamma", 0.95), ("lambda_virtual", -1.0), ("anisotropy_ratio", 0.5)]
+    ("key", "value"),
+    [("drop_gamma", 0.95), ("lambda_virtual", -1.0), ("anisotropy_ratio", 0.5), ("virtual_every", 0)],
 )
 def test_bad_regulariser_settings_are_refused(key, value) -> None:
     with pytest.raises(ValueError, match=key):

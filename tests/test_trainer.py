@@ -192,6 +192,39 @@ def test_meta_records_timings_and_sizes(scene) -> None:
     assert field.color.grid.table.shape[1] == 2**log2  # the recorded size is the one in use
 
 
+def test_training_length_is_sized_by_the_views_unless_forced() -> None:
+    per, low, high = T.ITERATIONS_PER_VIEW, T.MIN_ITERATIONS, T.MAX_ITERATIONS
+    assert T.training_length(None, 3) == {
+        "iterations": max(3 * per, low),
+        "forced": False,
+        "rule": T.training_length(None, 3)["rule"],
+    }
+    assert T.training_length(None, 1)["iterations"] == low  # the floor
+    assert T.training_length(None, 10_000)["iterations"] == high  # the cap
+    assert T.training_length(None, 8)["iterations"] == min(max(8 * per, low), high)
+    assert T.training_length(7, 3) == {"iterations": 7, "forced": True, "rule": "--iterations"}
+    assert T.training_length(0, 3)["iterations"] == 0
+
+
+def test_train_without_iterations_runs_the_scene_sized_length(scene, monkeypatch, tmp_path) -> None:
+    monkeypatch.setattr(T, "ITERATIONS_PER_VIEW", 2)
+    monkeypatch.setattr(T, "MIN_ITERATIONS", 1)
+    cfg = TrainConfig(num_gaussians=300, densify=False, language=False, depth=False)
+    assert cfg.iterations is None
+    field = train(scene, cfg, progress=False)
+    assert field.meta["iterations"] == 6  # 2 per view x 3 training views
+    assert field.meta["training_length"]["forced"] is False
+    assert field.meta["config"]["iterations"] == 6
+    field.save(tmp_path / "f")
+    assert LanguageField.load(tmp_path / "f").meta["training_length"]["iterations"] == 6
+    forced = train(
+        scene,
+        TrainConfig(iterations=4, num_gaussians=300, densify=False, language=False, depth=False),
+        progress=False,
+    )
+    assert forced.meta["iterations"] == 4 and forced.meta["training_length"]["forced"] is True
+
+
 def test_default_sizes_follow_the_scene(scene) -> None:
     field = _train(scene, iterations=0)
     pixels = 64 * 48
