@@ -105,6 +105,9 @@ class LanguageField(nn.Module):
         self.folder: Path | None = None
         # The language grid may reuse the colour grid's cell look-up when both share the layout.
         self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
+        # The colour grid's table rows for the means as they were last rendered, (means, version, rows):
+        # a training iteration renders the same Gaussians twice (the virtual view).
+        self._rows_memo: tuple[Tensor, int, Tensor] | None = None
 
     @property
     def has_language(self) -> bool:
@@ -173,7 +176,10 @@ class LanguageField(nn.Module):
         center = torch.as_tensor(camera.center, dtype=means.dtype)
         offset = means - center
         dist = torch.sqrt((offset * offset).sum(-1, keepdim=True) + 1e-12)
-        corners = self.color.grid.corners(means)
+        memo = self._rows_memo
+        same = memo is not None and memo[0] is means and memo[1] == means._version
+        corners = self.color.grid.corners(means, memo[2] if same else None)
+        self._rows_memo = (means, means._version, corners[0])
         rgb = self.color(means, offset / dist, corners)
         features = [rgb, dist]
         latents = self.gaussian_latents(corners) if language else None

@@ -236,7 +236,7 @@ class HashGrid(nn.Module):
         """
         return self.interpolate(*self.corners(x))
 
-    def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
+    def corners(self, x: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Find each point's cell at every level: the table rows of its 8 corners and its place in the cell.
 
         This is the part of the encoding that does not depend on the table, so grids with equal configs
@@ -244,6 +244,7 @@ class HashGrid(nn.Module):
 
         Args:
             x: [N, 3] world positions.
+            rows: these positions' rows from an earlier call, reused (they depend on the cells only).
 
         Returns:
             rows: [8, L, N] int64 rows of the flat ``[L * T]`` table, corner ``c = 4 cx + 2 cy + cz``.
@@ -258,7 +259,7 @@ class HashGrid(nn.Module):
         # pointing at a corner R + 1 that does not exist.
         lo = torch.minimum(pos.detach().floor().to(torch.int64), self.max_corner)
         frac = pos - lo.to(x.dtype)
-        return self._corner_rows(lo), frac
+        return (self._corner_rows(lo) if rows is None else rows), frac
 
     def interpolate(self, rows: Tensor, frac: Tensor, groups: int = 1) -> Tensor:
         """Trilinearly interpolate the table at the corners found by :meth:`corners`.
