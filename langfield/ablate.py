@@ -65,6 +65,10 @@ CASES: dict[str, dict[str, Any]] = {
     "no-opacity-decay": {"opacity_decay": 1.0},
     "anisotropy": {"lambda_anisotropy": 0.01},
     "smooth": {"lambda_smooth": 0.1},
+    "carve": {"carve_free_space": True},
+    "visibility": {"lambda_visibility": 0.5},
+    "half-resolution": {"half_resolution_until": 0.5},
+    "half-size-virtual": {"virtual_resolution": 0.5},
 }
 LANGUAGE_CASES = ("no-lop", "per-gaussian", "baseline")
 DEPTH_CASES = ("no-lad", "no-depth", "depth-init")

@@ -110,10 +110,14 @@ SPARSE_VIEW_FLAGS = (
     "virtual_baseline",
     "virtual_directions",
     "virtual_every",
+    "virtual_resolution",
+    "half_resolution_until",
     "random_background",
     "dark_backdrop",
     "lambda_empty",
     "opacity_decay",
+    "lambda_visibility",
+    "carve_free_space",
     "lambda_smooth",
     "lambda_anisotropy",
 )
@@ -376,6 +380,30 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="the virtual-view term on every n-th iteration (it renders a second view)",
+    )
+    p.add_argument(
+        "--half-resolution-until",
+        type=float,
+        default=None,
+        help="fraction of the run that renders the training views at half their width and height",
+    )
+    p.add_argument(
+        "--carve-free-space",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="remove Gaussians in front of the surfaces the training views' stereo resolves",
+    )
+    p.add_argument(
+        "--lambda-visibility",
+        type=float,
+        default=None,
+        help="weight of the free-space term: a view's surface may not lie in front of another view's",
+    )
+    p.add_argument(
+        "--virtual-resolution",
+        type=float,
+        default=None,
+        help="the virtual-view term's image size as a fraction of the training view's (0 < F <= 1)",
     )
     p.add_argument(
         "--random-background",

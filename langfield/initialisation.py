@@ -46,6 +46,7 @@ __all__ = [
     "plane_sweep",
     "random_points",
     "sfm_points",
+    "stereo_depths",
 ]
 
 InitMethod = Literal["dense", "sfm", "depth", "random"]
@@ -63,12 +64,15 @@ class StartPoints:
         colors: [N, 3] float32 colours in [0, 1] from the images (grey for the random fill).
         method: the method that produced the photo points ("random" after a fallback).
         stats: what the report records (counts per stage, seconds).
+        depths: the training views' stereo z-depth maps ([H, W], NaN where unresolved) when the
+            method computed them (:func:`stereo_depths`), else None.
     """
 
     points: np.ndarray
     colors: np.ndarray
     method: str
     stats: dict = field(default_factory=dict)
+    depths: tuple[np.ndarray, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -262,13 +266,49 @@ def _consistent(
     return ok.reshape(h, w)
 
 
+def stereo_depths(
+    cameras: list[Camera],
+    images: list[np.ndarray],
+    bounds: np.ndarray,
+    cfg: PlaneSweepConfig = PlaneSweepConfig(),
+) -> tuple[list[np.ndarray], list[int]]:
+    """Each view's plane-sweep z-depth where it is matched and agrees with another view's.
+
+    Args:
+        cameras, images: the training views ([H, W, 3] images in [0, 1]); at least two.
+        bounds: [2, 3] box the scene lies in (the sweep's depth range).
+        cfg: settings.
+
+    Returns:
+        ``(depths, matched)``: per view an [H, W] float32 z-depth map (OpenCV: along the viewing axis),
+        NaN where the sweep found no distinct match or no other view agrees; and per view the number of
+        matched pixels before the consistency check.
+    """
+    sweeps, valid = [], []
+    for i, cam in enumerate(cameras):
+        near, far = depth_range(cam, bounds)
+        sources = [(c, im) for j, (c, im) in enumerate(zip(cameras, images, strict=True)) if j != i]
+        depth, score = plane_sweep(cam, images[i], sources, near, far, cfg)
+        sweeps.append(depth)
+        valid.append(score >= cfg.min_score)
+    depths = []
+    for i, cam in enumerate(cameras):
+        agree = np.zeros_like(valid[i])
+        for j, other in enumerate(cameras):
+            if j != i:
+                agree |= _consistent(sweeps[i], cam, sweeps[j], valid[j], other, cfg)
+        depths.append(np.where(valid[i] & agree, sweeps[i], np.nan).astype(np.float32))
+    return depths, [int(v.sum()) for v in valid]
+
+
 def dense_points(
     cameras: list[Camera],
     images: list[np.ndarray],
     bounds: np.ndarray,
     cfg: PlaneSweepConfig = PlaneSweepConfig(),
 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Surface points of the training views by plane sweep and geometric consistency.
+    """Surface points of the training views by plane sweep and geometric consistency
+    (:func:`stereo_depths` back-projected, then thinned to ``cfg.max_points``).
 
     Args:
         cameras, images: the training views ([H, W, 3] images in [0, 1]); at least two.
@@ -276,37 +316,22 @@ def dense_points(
         cfg: settings.
 
     Returns:
-        ``(points [N, 3], colors [N, 3], stats)``.
+        ``(points [N, 3], colors [N, 3], stats)``; ``stats["depths"]`` holds the depth maps (taken out
+        by :func:`start_points` before the stats are recorded).
     """
     if len(cameras) < 2:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), {"reason": "one view"}
-    depths, valid = [], []
+    depths, matched = stereo_depths(cameras, images, bounds, cfg)
+    points, colors, kept = [], [], []
     for i, cam in enumerate(cameras):
-        near, far = depth_range(cam, bounds)
-        sources = [(c, im) for j, (c, im) in enumerate(zip(cameras, images, strict=True)) if j != i]
-        depth, score = plane_sweep(cam, images[i], sources, near, far, cfg)
-        depths.append(depth)
-        valid.append(score >= cfg.min_score)
-    points, colors = [], []
-    kept = []
-    for i, cam in enumerate(cameras):
-        agree = np.zeros_like(valid[i])
-        for j, other in enumerate(cameras):
-            if j != i:
-                agree |= _consistent(depths[i], cam, depths[j], valid[j], other, cfg)
-        keep = valid[i] & agree
-        kept.append(int(keep.sum()))
-        rows, cols = np.nonzero(keep)
+        rows, cols = np.nonzero(np.isfinite(depths[i]))
+        kept.append(len(rows))
         points.append(_backproject(depths[i], cam, rows, cols))
         colors.append(images[i][rows, cols])
     pts = np.concatenate(points).astype(np.float32)
     cols_ = np.concatenate(colors).astype(np.float32)
     pts, cols_ = _thin(*_inside(pts, cols_, bounds), cfg.max_points)
-    stats = {
-        "matched_per_view": [int(v.sum()) for v in valid],
-        "consistent_per_view": kept,
-        "points": len(pts),
-    }
+    stats = {"matched_per_view": matched, "consistent_per_view": kept, "points": len(pts), "depths": depths}
     return pts, cols_, stats
 
 
@@ -378,6 +403,7 @@ def start_points(
     bounds = np.asarray(bounds, dtype=np.float64)
     t0 = time.perf_counter()
     stats: dict = {"method": method}
+    depth_maps = None
     photo = np.zeros((0, 3), np.float32)
     colors = np.zeros((0, 3), np.float32)
     wanted = max(1, round(num / (1.0 + fill)))
@@ -385,6 +411,7 @@ def start_points(
         photo, colors, stats["dense"] = dense_points(
             cameras, images, bounds, replace(sweep, max_points=wanted)
         )
+        depth_maps = tuple(stats["dense"].pop("depths", None) or ()) or None
     if method == "sfm":
         photo, colors, stats["sfm"] = sfm_points(cameras, images)
         photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
@@ -417,7 +444,7 @@ def start_points(
         random_points=n_random,
         seconds=time.perf_counter() - t0,
     )
-    return StartPoints(points, colors, used, stats)
+    return StartPoints(points, colors, used, stats, depth_maps if used != "random" else None)
 
 
 def _top_up(

@@ -151,6 +151,55 @@ def virtual_view_warp(
     return warped[0].permute(1, 2, 0), positive & inside
 
 
+def backproject(depth_z: Tensor, cam: Camera) -> Tensor:
+    """[H, W, 3] world points of ``cam``'s pixel centres at their z-depth ``depth_z`` [H, W]."""
+    v, u = torch.meshgrid(
+        torch.arange(cam.height, dtype=depth_z.dtype) + 0.5,
+        torch.arange(cam.width, dtype=depth_z.dtype) + 0.5,
+        indexing="ij",
+    )
+    local = torch.stack([(u - cam.cx) / cam.fx * depth_z, (v - cam.cy) / cam.fy * depth_z, depth_z], dim=-1)
+    w2c = cam.world_to_camera(dtype=depth_z.dtype)
+    return (local - w2c[:3, 3]) @ w2c[:3, :3]  # R^T (p - t)
+
+
+def free_space_violation(
+    points: Tensor, cam: Camera, depth_z: Tensor, covered: Tensor, tolerance: float
+) -> tuple[Tensor, Tensor]:
+    """How far ``points`` lie in the free space in front of the surface another view renders.
+
+    A point X that one view renders as a surface, projected into ``cam`` at z-depth z, lies in front
+    of what ``cam`` renders there (depth D) when z < D: ``cam`` looks through X. That contradicts X
+    being opaque (COLMAP's fusion rejects such depths as free-space violations); behind D it is merely
+    occluded, which is allowed.
+
+    Args:
+        points: [M, 3] world points.
+        cam: the other view; ``depth_z`` [H, W] its rendered z-depth, ``covered`` [H, W] bool where it
+            renders a surface.
+        tolerance: relative depth margin not counted.
+
+    Returns:
+        ``(violation [M], valid [M] bool)``: relu(D (1 - tolerance) - z) / D, and where X projects
+        into ``cam`` in front of it onto a covered pixel.
+    """
+    w2c = cam.world_to_camera(dtype=points.dtype)
+    local = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = local[:, 2]
+    ahead = z > 1e-6
+    z_safe = torch.where(ahead, z, torch.ones_like(z))
+    u = cam.fx * local[:, 0] / z_safe + cam.cx
+    v = cam.fy * local[:, 1] / z_safe + cam.cy
+    inside = ahead & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    col = u.detach().floor().long().clamp(0, cam.width - 1)
+    row = v.detach().floor().long().clamp(0, cam.height - 1)
+    seen = depth_z[row, col]
+    valid = inside & covered[row, col] & (seen > 1e-6)
+    seen_safe = torch.where(valid, seen, torch.ones_like(seen))
+    violation = torch.relu(seen_safe * (1.0 - tolerance) - z) / seen_safe
+    return violation * valid, valid
+
+
 def anisotropy_loss(log_scales: Tensor, ratio: float) -> Tensor:
     """mean over Gaussians of max(max scale / min scale, ratio) - ratio (PhysGaussian eq. 9).
 

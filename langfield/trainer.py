@@ -37,15 +37,17 @@ from langfield.depth_loss import LAMBDA_SA, LADTarget, depth_loss
 from langfield.field import LanguageField, Render, color_field_spec
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
-from langfield.initialisation import INIT_METHODS, start_points
+from langfield.initialisation import INIT_METHODS, StartPoints, start_points
 from langfield.language import LANGUAGE_CHANNELS, N_LEVELS, LanguageHeads, language_loss
 from langfield.lop import LOP_GAMMA, LOP_INTERVAL, LOP_TAU, lop_prune
 from langfield.raster import resolve_backend
 from langfield.regularisers import (
     anisotropy_loss,
+    backproject,
     dark_backdrop,
     depth_smoothness,
     drop_compensation,
+    free_space_violation,
     shifted_camera,
     virtual_shift,
     virtual_view_warp,
@@ -125,6 +127,12 @@ class TrainConfig:
     virtual_directions: Literal["horizontal", "any"] = "any"
     virtual_start: int = 0  # first iteration of the virtual-view term
     virtual_every: int = 1  # the term on every n-th iteration (it renders a second view: half the time)
+    # Coarse to fine (DashGaussian, Chen et al. CVPR 2025, schedules the resolution by the images'
+    # spectra; here one step): this fraction of the run renders the views at half their width and height.
+    half_resolution_until: float = 0.0
+    # The term's image size as a fraction of the training view's: the shifted view is rendered, warped
+    # and compared at this size (depth, image and coverage area-averaged down to it).
+    virtual_resolution: float = 1.0
     # A random background colour each iteration (scenes without alpha): a surface as dark as the black
     # background would otherwise be left transparent, and the opacity penalty even asks for that. Where
     # a photo shows a black backdrop the target there is that colour too. RGBA scenes keep their white:
@@ -139,6 +147,15 @@ class TrainConfig:
     # refine_start (the paper's 0.995; 1: off); Gaussians the images keep asking for recover, the rest
     # fade. At 1000 iterations: DTU scan37 18.09 -> 18.55 dB masked, lego 15.61 -> 16.16, fern 21.45 -> 21.51.
     opacity_decay: float = 0.995
+    # Free space between views: each training view's rendered surface, projected into the other
+    # training views, may not lie in front of what they render (their last render, held fixed).
+    lambda_visibility: float = 0.0
+    visibility_tolerance: float = 0.02
+    # Space carving with the start's stereo depth: every refine_every iterations, Gaussians whose centre
+    # lies in front of a surface some training view's plane sweep resolved (by more than the tolerance,
+    # relative) are removed: that view's rays pass through them.
+    carve_free_space: bool = False
+    carve_tolerance: float = 0.03
     lambda_smooth: float = 0.0  # edge-aware smoothness of the rendered depth
     lambda_anisotropy: float = 0.0  # penalty on max/min scale above anisotropy_ratio
     anisotropy_ratio: float = 10.0
@@ -173,10 +190,14 @@ CONFIG_FLAGS = {
     "virtual_baseline": "--virtual-baseline",
     "virtual_directions": "--virtual-directions",
     "virtual_every": "--virtual-every",
+    "virtual_resolution": "--virtual-resolution",
+    "half_resolution_until": "--half-resolution-until",
     "random_background": "--random-background",
     "dark_backdrop": "--dark-backdrop",
     "lambda_empty": "--lambda-empty",
     "opacity_decay": "--opacity-decay",
+    "lambda_visibility": "--lambda-visibility",
+    "carve_free_space": "--carve-free-space",
     "lambda_smooth": "--lambda-smooth",
     "lambda_anisotropy": "--lambda-anisotropy",
     "refiner": "--refiner",
@@ -243,9 +264,11 @@ def check_config(cfg: TrainConfig) -> None:
     number("lambda_dssim", 0.0, 1.0)
     for name in ("lambda_language", "lambda_depth", "lambda_sa", "lambda_opacity"):
         number(name, 0.0)
-    for name in ("densify", "lad", "lop", "random_background", "dark_backdrop"):
+    for name in ("densify", "lad", "lop", "random_background", "dark_backdrop", "carve_free_space"):
         if not isinstance(getattr(cfg, name), bool):
             fail(name, "True or False")
+    if cfg.carve_free_space and cfg.init not in ("dense", "depth"):
+        fail("carve_free_space", "False unless init is 'dense' or 'depth' (it carves with their stereo)")
     number("drop_gamma", 0.0, 0.9)
     number("lambda_virtual", 0.0)
     number("virtual_baseline", 0.0, 1.0, open_low=True)
@@ -253,7 +276,12 @@ def check_config(cfg: TrainConfig) -> None:
         fail("virtual_directions", "'horizontal' or 'any'")
     whole("virtual_start", 0)
     whole("virtual_every", 1)
+    number("virtual_resolution", 0.0, 1.0, open_low=True)
     number("lambda_smooth", 0.0)
+    number("lambda_visibility", 0.0)
+    number("visibility_tolerance", 0.0, 1.0)
+    number("carve_tolerance", 0.0, 1.0)
+    number("half_resolution_until", 0.0, 1.0)
     number("opacity_decay", 0.0, 1.0, open_low=True)
     number("lambda_empty", 0.0)
     number("lambda_anisotropy", 0.0)
@@ -386,10 +414,10 @@ def language_targets(scene: Scene, cfg: TrainConfig, progress: bool = True) -> L
     return LanguageTargets(latents, valid, autoencoder, stats, ae_cfg, segments, prototypes)
 
 
-def depth_targets(
+def depth_inputs(
     scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None
-) -> dict[str, LADTarget] | None:
-    """Each training view's depth prior and masks, prepared once for L_D; None when depth is off.
+) -> dict[str, tuple[Tensor, Tensor]] | None:
+    """Each training view's LAD masks [3, H, W] and depth prior [H, W]; None when depth is off.
 
     The masks are the feature cache's (the language masks, as LAD asks); a view without a cache gets
     only the global term. Priors with NaN or inf pixels are rejected when the scene loads them; the
@@ -419,17 +447,69 @@ def depth_targets(
             seg = targets.segments[name]
         else:
             seg = torch.full((N_LEVELS, *prior.shape), -1, dtype=torch.int64)
-        out[name] = LADTarget.from_view(seg, prior, scene.depth_kind)
+        out[name] = (seg, prior)
     return out
 
 
-def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None = None) -> LanguageField:
-    """An untrained field sized to ``scene``: random Gaussians in its bounds, colour and language fields."""
+def depth_targets(
+    scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None
+) -> dict[str, LADTarget] | None:
+    """Each training view's depth prior and masks (:func:`depth_inputs`), prepared once for L_D."""
+    inputs = depth_inputs(scene, cfg, targets)
+    if inputs is None:
+        return None
+    return {name: LADTarget.from_view(seg, prior, scene.depth_kind) for name, (seg, prior) in inputs.items()}
+
+
+@dataclass(frozen=True)
+class ViewTargets:
+    """What one training view supervises, at the size its camera renders.
+
+    Attributes:
+        camera: the view's camera (the scene's, or :meth:`half_size`'s).
+        image: [H, W, 3] photo.
+        coverage: [H, W] 1 on surfaces, 0 on the empty space the photo shows (None: no empty space).
+        latents, valid: [3, H, W, 3] language latents and [3, H, W] where a mask gives one (None
+            without language).
+        depth: the L_D target (None without depth priors).
+        depth_input: the masks [3, H, W] and prior [H, W] it was built from (to resample it).
+    """
+
+    camera: Camera
+    image: Tensor
+    coverage: Tensor | None = None
+    latents: Tensor | None = None
+    valid: Tensor | None = None
+    depth: LADTarget | None = None
+    depth_input: tuple[Tensor, Tensor] | None = None
+
+    def half_size(self) -> ViewTargets:
+        """The view at half its width and height (DashGaussian's coarse-to-fine training, Chen et al.
+        2025): photo and coverage area-averaged, the per-pixel targets (latents, masks, depth prior)
+        taken at the nearest pixel centre, and the L_D target rebuilt from those."""
+        cam = self.camera.scaled(2.0)
+        rows = ((torch.arange(cam.height) + 0.5) * self.camera.height / cam.height).long()
+        cols = ((torch.arange(cam.width) + 0.5) * self.camera.width / cam.width).long()
+
+        (image,) = area_resize([self.image], cam)
+        coverage = None if self.coverage is None else area_resize([self.coverage[..., None]], cam)[0][..., 0]
+        depth = depth_input = None
+        if self.depth is not None and self.depth_input is not None:
+            seg, prior = self.depth_input
+            depth_input = (seg[:, rows][:, :, cols], prior[rows][:, cols])
+            depth = LADTarget.from_view(*depth_input, self.depth.depth_kind)
+        latents = None if self.latents is None else self.latents[:, rows][:, :, cols]
+        valid = None if self.valid is None else self.valid[:, rows][:, :, cols]
+        return ViewTargets(cam, image, coverage, latents, valid, depth, depth_input)
+
+
+def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
+    """Where the Gaussians start (:func:`langfield.initialisation.start_points` with ``cfg.init``)."""
     bounds = scene_bounds(scene, cfg)
     train_cams = scene.cameras("train")
     pixels = max(c.width * c.height for c in train_cams)  # of one image
     n = cfg.num_gaussians or G.num_gaussians_for_scene(bounds, pixels, len(train_cams))
-    start = start_points(
+    return start_points(
         cfg.init,
         train_cams,
         [scene.image(c.name) for c in train_cams],
@@ -440,6 +520,20 @@ def build_field(scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None 
         priors=[scene.depth(c.name) for c in train_cams] if cfg.init == "depth" else None,
         depth_kind=scene.depth_kind,
     )
+
+
+def build_field(
+    scene: Scene,
+    cfg: TrainConfig,
+    targets: LanguageTargets | None = None,
+    start: StartPoints | None = None,
+) -> LanguageField:
+    """An untrained field sized to ``scene``: Gaussians at ``start`` (default :func:`scene_start`),
+    colour and language fields."""
+    bounds = scene_bounds(scene, cfg)
+    train_cams = scene.cameras("train")
+    pixels = max(c.width * c.height for c in train_cams)  # of one image
+    start = start or scene_start(scene, cfg)
     n = len(start.points)
     splats = G.gaussians_at(
         torch.from_numpy(start.points), lone_scale=0.01 * float(np.linalg.norm(bounds[1] - bounds[0]))
@@ -579,9 +673,12 @@ def train(
         refiner = OnnxImageRefiner(cfg.refiner)
     train_names = scene.names("train")
     targets = language_targets(scene, cfg, progress=progress)
-    depths = depth_targets(scene, cfg, targets)
-    field = build_field(scene, cfg, targets)
-    field.meta["depth"] = None if depths is None else {"lad": cfg.lad, "kind": scene.depth_kind}
+    depth_in = depth_inputs(scene, cfg, targets)
+    start = scene_start(scene, cfg)
+    field = build_field(scene, cfg, targets, start)
+    stereo = _stereo_surfaces(scene, start) if cfg.carve_free_space else []
+    carved: list[dict[str, int]] = []
+    field.meta["depth"] = None if depth_in is None else {"lad": cfg.lad, "kind": scene.depth_kind}
     field.meta["training_length"] = length
     use_lop = cfg.lop and targets is not None and cfg.lop_every > 0
     lop_rounds: list[dict[str, Any]] = []
@@ -600,22 +697,41 @@ def train(
     )
     state = strategy.initialize_state(field.splats)
     cameras = {name: scene.camera(name) for name in train_names}
-    images = {name: torch.from_numpy(scene.image(name)) for name in train_names}
     coverage, source = empty_space(scene, cfg)
     field.meta["empty_space"] = {
         "source": source,
         "fraction": {name: round(float(1.0 - c.mean()), 4) for name, c in coverage.items()},
     }
+    views = {
+        name: ViewTargets(
+            cameras[name],
+            torch.from_numpy(scene.image(name)),
+            coverage.get(name),
+            None if targets is None else targets.latents[name],
+            None if targets is None else targets.valid[name],
+            None if depth_in is None else LADTarget.from_view(*depth_in[name], scene.depth_kind),
+            None if depth_in is None else depth_in[name],
+        )
+        for name in train_names
+    }
+    # The first half_resolution_until of the run renders every view at half its width and height.
+    half_steps = round(cfg.half_resolution_until * cfg.iterations)
+    half_views = {name: v.half_size() for name, v in views.items()} if half_steps > 0 else {}
     rng = np.random.default_rng(cfg.seed)
     drop_generator = torch.Generator().manual_seed(cfg.seed)
     order: list[str] = []
+    rendered: dict[str, tuple[Camera, Tensor, Tensor]] = {}  # each view's last z-depth, coverage
     train_seconds = 0.0
     bar = tqdm(total=cfg.iterations, disable=not progress, desc="train", dynamic_ncols=True, leave=False)
     for step in range(cfg.iterations):
         t0 = time.perf_counter()
+        if stereo and step % cfg.refine_every == 0:
+            carved.append(_carve_free_space(field, stereo, optimizers, state, cfg.carve_tolerance, step))
         if not order:
             order = [train_names[i] for i in rng.permutation(len(train_names))]
         name = order.pop()
+        view = half_views[name] if step < half_steps else views[name]
+        cam = view.camera
         # 3DGS's exponential decay of the position learning rate to 1 % over the run.
         frac = step / max(cfg.iterations - 1, 1)
         optimizers["means"].param_groups[0]["lr"] = means_lr0 * math.exp(math.log(0.01) * frac)
@@ -625,16 +741,16 @@ def train(
             rate = cfg.drop_gamma * step / max(cfg.iterations, 1)
             keep = drop_compensation(field.num_gaussians, rate, drop_generator)
         behind = None
-        cover = coverage.get(name)
+        cover = view.coverage
         if cfg.random_background and scene.background is None:
             behind = torch.rand(3, generator=drop_generator)
-        target = images[name]
+        target = view.image
         if cover is not None and behind is not None:  # a photo's backdrop shows the random colour
-            target = backdrop_target(images[name], cover, behind)
+            target = backdrop_target(view.image, cover, behind)
         out = field.render(
-            cameras[name],
+            cam,
             backend=cfg.backend,
-            hard_depth=depths is not None,
+            hard_depth=view.depth is not None,
             opacity_scale=keep,
             background=behind,
         )
@@ -643,28 +759,31 @@ def train(
             loss = loss + cfg.lambda_empty * (out.alpha * (1.0 - cover)).mean()
         virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
         if cfg.lambda_virtual > 0 and virtual_step:
-            loss = loss + cfg.lambda_virtual * _virtual_view_loss(
-                field, cameras[name], target, out, keep, cfg, rng
-            )
+            loss = loss + cfg.lambda_virtual * _virtual_view_loss(field, cam, target, out, keep, cfg, rng)
         pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0
         if refiner is not None and pseudo_step:
             pseudo = _pseudo_view_loss(field, refiner, list(cameras.values()), cfg, rng)
             loss = loss + cfg.lambda_refiner * pseudo
+        if cfg.lambda_visibility > 0:
+            seen = out.alpha.detach() > 0.5
+            depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
+            loss = loss + cfg.lambda_visibility * _visibility_loss(
+                depth_z, seen, cam, name, rendered, cfg.visibility_tolerance
+            )
+            rendered[name] = (cam, depth_z.detach(), seen)
         if cfg.lambda_smooth > 0:
             covered = out.alpha.detach() > 0.5
-            depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cameras[name])
-            loss = loss + cfg.lambda_smooth * depth_smoothness(depth_z, images[name], covered)
+            depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
+            loss = loss + cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered)
         if cfg.lambda_anisotropy > 0:
             loss = loss + cfg.lambda_anisotropy * anisotropy_loss(
                 field.splats["log_scales"], cfg.anisotropy_ratio
             )
-        if targets is not None:
-            loss = loss + cfg.lambda_language * language_loss(
-                out.latents, targets.latents[name], targets.valid[name]
-            )
-        if depths is not None:
+        if view.latents is not None:
+            loss = loss + cfg.lambda_language * language_loss(out.latents, view.latents, view.valid)
+        if view.depth is not None:
             loss = loss + cfg.lambda_depth * depth_loss(
-                depths[name], out.depth_hard, out.depth, cfg.lambda_sa, lad=cfg.lad
+                view.depth, out.depth_hard, out.depth, cfg.lambda_sa, lad=cfg.lad
             )
         if cfg.lambda_opacity > 0:
             loss = loss + cfg.lambda_opacity * G.opacities(field.splats).mean()
@@ -673,8 +792,8 @@ def train(
             info = {
                 "means2d": out.means2d,
                 "radii": out.radii,
-                "width": cameras[name].width,
-                "height": cameras[name].height,
+                "width": cam.width,
+                "height": cam.height,
             }
             strategy.step_post_backward(field.splats, optimizers, state, step, info, extent)
         for opt in optimizers.values():
@@ -703,6 +822,7 @@ def train(
             callback(step + 1, train_seconds, field)
     bar.close()
     field.meta.update(
+        carved={"removed": sum(c["removed"] for c in carved), "rounds": len(carved)} if stereo else None,
         lop=lop_rounds if use_lop else None,
         train_seconds=train_seconds,
         iterations=cfg.iterations,
@@ -781,6 +901,10 @@ def _virtual_view_loss(
     )
     if right == 0.0 and up == 0.0:
         return out.rgb.sum() * 0.0
+    if cfg.virtual_resolution < 1.0:
+        cam = cam.scaled(1.0 / cfg.virtual_resolution)
+        depth, image, cover = area_resize([depth[..., None], image, covered[..., None].float()], cam)
+        depth, covered = depth[..., 0], cover[..., 0] > 0.5
     shifted = field.render(
         shifted_camera(cam, right, up), backend=cfg.backend, language=False, opacity_scale=keep
     )
@@ -791,6 +915,70 @@ def _virtual_view_loss(
     l1 = ((warped - image).abs().mean(-1) * mask).sum() / mask.sum()
     d_ssim = ((1.0 - ssim_map(warped, image)[0].mean(0)) * mask).sum() / mask.sum()
     return (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * d_ssim
+
+
+def area_resize(images: list[Tensor], cam: Camera) -> list[Tensor]:
+    """Each [H, W, C] image area-averaged to ``cam``'s size (differentiable)."""
+    size = (cam.height, cam.width)
+    return [
+        torch.nn.functional.interpolate(x.permute(2, 0, 1)[None], size=size, mode="area")[0].permute(1, 2, 0)
+        for x in images
+    ]
+
+
+def _visibility_loss(
+    depth_z: Tensor,
+    seen: Tensor,
+    cam: Camera,
+    name: str,
+    rendered: dict[str, tuple[Camera, Tensor, Tensor]],
+    tolerance: float,
+) -> Tensor:
+    """Mean free-space violation (:func:`langfield.regularisers.free_space_violation`) of this view's
+    rendered surface [H, W] in every other training view's last render."""
+    points = backproject(depth_z, cam)[seen]
+    total = depth_z.sum() * 0.0
+    count = 0
+    for other, (other_cam, other_depth, other_seen) in rendered.items():
+        if other == name:
+            continue
+        violation, valid = free_space_violation(points, other_cam, other_depth, other_seen, tolerance)
+        total = total + violation.sum()
+        count += int(valid.sum())
+    return total / max(count, 1)
+
+
+def _stereo_surfaces(scene: Scene, start: StartPoints) -> list[tuple[Camera, Tensor, Tensor]]:
+    """The training views' stereo depth maps as (camera, z-depth [H, W], resolved [H, W] bool)."""
+    if start.depths is None:
+        return []
+    surfaces = []
+    for cam, depth in zip(scene.cameras("train"), start.depths, strict=True):
+        resolved = np.isfinite(depth)
+        surfaces.append((cam, torch.from_numpy(np.where(resolved, depth, 0.0)), torch.from_numpy(resolved)))
+    return surfaces
+
+
+@torch.no_grad()
+def _carve_free_space(
+    field: LanguageField,
+    stereo: list[tuple[Camera, Tensor, Tensor]],
+    optimizers: dict[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    tolerance: float,
+    step: int,
+) -> dict[str, int]:
+    """Removes the Gaussians whose centre lies in front of a surface a training view's stereo resolved
+    (in the free space its rays cross: space carving, Kutulakos and Seitz 2000)."""
+    means = field.splats["means"].detach()
+    free = torch.zeros(means.shape[0], dtype=torch.bool)
+    for cam, depth, resolved in stereo:
+        violation, _ = free_space_violation(means, cam, depth, resolved, tolerance)
+        free |= violation > 0
+    removed = int(free.sum())
+    if removed and removed < means.shape[0]:
+        remove(field.splats, optimizers, state, free)
+    return {"iteration": step, "removed": removed}
 
 
 def _pseudo_view_loss(

@@ -72,6 +72,9 @@ def test_dense_points_lie_on_the_plane_and_are_capped() -> None:
     cams, images = plane_views(z=2.0)
     bounds = np.array([[-3.0, -3.0, -4.0], [3.0, 3.0, -0.5]])
     points, colors, stats = dense_points(cams, images, bounds, PlaneSweepConfig(max_points=500))
+    depths = stats["depths"]
+    assert len(depths) == 3 and np.isfinite(depths[1]).sum() == stats["consistent_per_view"][1] > 0
+    assert np.nanmedian(np.abs(depths[1] - 2.0)) < 0.02  # z-depth of the plane
     assert 0 < len(points) <= 500 and colors.shape == points.shape
     assert np.median(np.abs(points[:, 2] + 2.0)) < 0.02
     assert stats["points"] == len(points)

@@ -139,6 +139,11 @@ def test_an_interrupted_save_keeps_the_old_field(scene_dir, field_dir, tmp_path,
         (["--lambda-empty", "-1"], "--lambda-empty"),
         (["--opacity-decay", "1.5"], "--opacity-decay"),
         (["--virtual-every", "0"], "--virtual-every"),
+        (["--virtual-resolution", "0"], "--virtual-resolution"),
+        (["--virtual-resolution", "1.5"], "--virtual-resolution"),
+        (["--half-resolution-until", "-0.1"], "--half-resolution-until"),
+        (["--lambda-visibility", "nan"], "--lambda-visibility"),
+        (["--carve-free-space", "--init", "random"], "--carve-free-space"),
     ],
 )
 def test_bad_flag_values_exit_2_naming_the_flag(scene_dir, tmp_path, capsys, no_work, flags, named) -> None:

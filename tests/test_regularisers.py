@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -187,6 +189,12 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
         "0.99",
         "--virtual-every",
         "3",
+        "--virtual-resolution",
+        "0.5",
+        "--half-resolution-until",
+        "0.5",
+        "--lambda-visibility",
+        "0.1",
     ]
     argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
     assert main([*argv, "--init", "random", *flags]) == 0
@@ -194,6 +202,7 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
     expected = {"drop_gamma": 0.3, "lambda_virtual": 0.5, "virtual_baseline": 0.25}
     expected.update(random_background=False, lambda_smooth=0.01, lambda_anisotropy=0.02)
     expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99, virtual_every=3)
+    expected.update(virtual_resolution=0.5, half_resolution_until=0.5, lambda_visibility=0.1)
     assert {k: recorded[k] for k in expected} == expected
     assert main([*argv, "--force", "--random-background"]) == 0
     assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
@@ -221,6 +230,37 @@ def test_virtual_term_runs_on_every_nth_iteration_from_its_start(
     assert len(calls) == steps
 
 
+def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(scene, monkeypatch) -> None:
+    from langfield.field import LanguageField
+
+    sizes = []
+    real = LanguageField.render
+    monkeypatch.setattr(
+        LanguageField,
+        "render",
+        lambda self, cam, **k: sizes.append((cam.width, cam.height)) or real(self, cam, **k),
+    )
+    cfg = lf.TrainConfig(
+        iterations=3, num_gaussians=200, init="random", language=False, depth=False, virtual_resolution=0.5
+    )
+    field = lf.train(scene, cfg, progress=False)
+    assert sizes == [(48, 36), (24, 18)] * 3
+    assert field.meta["config"]["virtual_resolution"] == 0.5
+    assert all(torch.isfinite(p).all() for p in field.splats.values())
+
+
+def test_area_resize_averages_blocks_and_passes_gradient() -> None:
+    from langfield.trainer import area_resize
+
+    x = torch.arange(4 * 6 * 2, dtype=torch.float32).reshape(4, 6, 2).requires_grad_(True)
+    small = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=3, height=2)
+    (y,) = area_resize([x], small)
+    expected = x.detach().reshape(2, 2, 3, 2, 2).mean(dim=(1, 3))
+    torch.testing.assert_close(y, expected)
+    y.sum().backward()
+    torch.testing.assert_close(x.grad, torch.full_like(x, 0.25))
+
+
 def test_dropout_changes_training_and_rendering_uses_every_gaussian(scene) -> None:
     base = lf.TrainConfig(
         iterations=4, num_gaussians=300, init="random", language=False, depth=False, drop_gamma=0.0
@@ -236,7 +276,15 @@ def test_dropout_changes_training_and_rendering_uses_every_gaussian(scene) -> No
 
 @pytest.mark.parametrize(
     ("key", "value"),
-    [("drop_gamma", 0.95), ("lambda_virtual", -1.0), ("anisotropy_ratio", 0.5), ("virtual_every", 0)],
+    [
+        ("drop_gamma", 0.95),
+        ("lambda_virtual", -1.0),
+        ("anisotropy_ratio", 0.5),
+        ("virtual_every", 0),
+        ("virtual_resolution", 0.0),
+        ("virtual_resolution", 1.5),
+        ("half_resolution_until", 1.5),
+    ],
 )
 def test_bad_regulariser_settings_are_refused(key, value) -> None:
     with pytest.raises(ValueError, match=key):
@@ -360,3 +408,144 @@ def test_opacity_decay_fades_the_gaussians_from_refine_start(scene) -> None:
     assert 0.125 * 0.7 < ratio < 0.125 * 1.4
     with pytest.raises(ValueError, match="opacity_decay"):
         lf.TrainConfig(opacity_decay=0.0)
+
+
+def _plane_views() -> tuple[Camera, Camera, torch.Tensor, torch.Tensor]:
+    """Two cameras 0.3 apart facing the plane z = -2, and the z-depth each sees of it."""
+    a = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=40, height=30)
+    b = Camera.look_at((0.3, 0.0, 0.0), (0.3, 0.0, -1.0), (0.0, 1.0, 0.0), width=40, height=30)
+    return a, b, torch.full((30, 40), 2.0), torch.full((30, 40), 2.0)
+
+
+def test_backproject_inverts_the_projection() -> None:
+    from langfield.regularisers import backproject
+
+    a, _, depth, _ = _plane_views()
+    points = backproject(depth, a)
+    torch.testing.assert_close(points[..., 2], torch.full((30, 40), -2.0), atol=1e-5, rtol=0)
+    w2c = a.world_to_camera()
+    local = points.reshape(-1, 3) @ w2c[:3, :3].T + w2c[:3, 3]
+    u = a.fx * local[:, 0] / local[:, 2] + a.cx
+    torch.testing.assert_close(u.reshape(30, 40)[0], torch.arange(40, dtype=torch.float32) + 0.5)
+
+
+def test_free_space_violation_counts_points_in_front_of_the_other_view_only() -> None:
+    from langfield.regularisers import backproject, free_space_violation
+
+    a, b, depth_a, depth_b = _plane_views()
+    covered = torch.ones(30, 40, dtype=torch.bool)
+    on_surface, valid = free_space_violation(
+        backproject(depth_a, a).reshape(-1, 3), b, depth_b, covered, 0.02
+    )
+    assert valid.float().mean() > 0.5 and float(on_surface.abs().max()) < 1e-5
+    near = backproject(depth_a * 0.5, a).reshape(-1, 3)  # halfway to a: b looks through these
+    violation, valid = free_space_violation(near, b, depth_b, covered, 0.02)
+    assert valid.any() and torch.allclose(violation[valid], torch.tensor((2.0 * 0.98 - 1.0) / 2.0), atol=1e-4)
+    behind = backproject(depth_a * 1.5, a).reshape(-1, 3)  # occluded from b: allowed
+    assert float(free_space_violation(behind, b, depth_b, covered, 0.02)[0].abs().max()) == 0.0
+    nothing = torch.zeros(30, 40, dtype=torch.bool)  # b renders no surface there: no claim
+    violation, valid = free_space_violation(near, b, depth_b, nothing, 0.02)
+    assert not valid.any() and float(violation.abs().max()) == 0.0
+
+
+def test_the_free_space_term_pulls_a_near_surface_back() -> None:
+    from langfield.regularisers import backproject, free_space_violation
+
+    a, b, depth_a, depth_b = _plane_views()
+    near = (depth_a * 0.5).requires_grad_(True)
+    violation, valid = free_space_violation(
+        backproject(near, a).reshape(-1, 3), b, depth_b, torch.ones(30, 40, dtype=torch.bool), 0.02
+    )
+    violation.sum().backward()
+    assert float(near.grad[valid.reshape(30, 40)].max()) < 0  # descent makes the depth larger
+
+
+def test_training_with_the_free_space_term_runs(scene, monkeypatch) -> None:
+    from langfield import trainer as T
+
+    calls = []
+    real = T._visibility_loss
+    monkeypatch.setattr(T, "_visibility_loss", lambda *a, **k: calls.append(len(a[4])) or real(*a, **k))
+    cfg = lf.TrainConfig(
+        iterations=5, num_gaussians=200, init="random", language=False, lambda_visibility=1.0
+    )
+    field = lf.train(scene, cfg, progress=False)
+    assert calls == [0, 1, 2, 3, 3]  # the views rendered before each step; each view once per round
+    assert all(torch.isfinite(p).all() for p in field.splats.values())
+
+
+def test_carving_removes_the_gaussians_in_front_of_a_resolved_surface_only() -> None:
+    from types import SimpleNamespace
+
+    from langfield import gaussians as G
+    from langfield.strategy import DensifyStrategy
+    from langfield.trainer import _carve_free_space
+
+    a, b, depth, _ = _plane_views()
+    resolved = torch.ones(30, 40, dtype=torch.bool)
+    resolved[:, 20:] = False  # a's right half unresolved: nothing known in front of it
+    # On the plane (z = -2), halfway to a in front of its resolved left half, the same in front of the
+    # unresolved right half, and behind the plane.
+    points = torch.tensor([[-0.2, 0.0, -2.0], [-0.2, 0.0, -1.0], [0.2, 0.0, -1.0], [-0.2, 0.0, -3.0]])
+    splats = G.gaussians_at(points)
+    optimizers = {k: torch.optim.Adam([p]) for k, p in splats.items()}
+    state = DensifyStrategy().initialize_state(splats)
+    field = SimpleNamespace(splats=splats)
+    result = _carve_free_space(field, [(a, depth, resolved)], optimizers, state, 0.03, 7)
+    assert result == {"iteration": 7, "removed": 1}
+    kept = splats["means"].detach()
+    torch.testing.assert_close(kept, points[[0, 2, 3]])
+    assert optimizers["means"].param_groups[0]["params"][0] is splats["means"]
+    assert state["grad2d"].shape == (3,)
+
+
+def test_training_with_carving_records_what_it_removed(scene) -> None:
+    cfg = lf.TrainConfig(iterations=3, num_gaussians=300, language=False, depth=False, carve_free_space=True)
+    field = lf.train(scene, dataclasses.replace(cfg, refine_every=2), progress=False)
+    carved = field.meta["carved"]
+    assert carved["rounds"] == 2
+    assert 0 < carved["removed"] == 300 - field.meta["num_gaussians"]
+
+
+def test_a_view_at_half_size_averages_the_photo_and_samples_the_targets() -> None:
+    from langfield.depth_loss import LADTarget
+    from langfield.trainer import ViewTargets
+
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=8, height=6)
+    image = torch.rand(6, 8, 3)
+    coverage = torch.ones(6, 8)
+    coverage[:, :2] = 0.0
+    seg = torch.arange(6 * 8).reshape(1, 6, 8).repeat(3, 1, 1) // 4  # masks of 4 pixels along a row
+    latents = torch.rand(3, 6, 8, 3)
+    prior = torch.linspace(1.0, 2.0, 48).reshape(6, 8)
+    view = ViewTargets(
+        cam, image, coverage, latents, seg >= 0, LADTarget.from_view(seg, prior, "depth"), (seg, prior)
+    )
+    half = view.half_size()
+    assert (half.camera.width, half.camera.height) == (4, 3) and half.camera.fx == pytest.approx(cam.fx / 2)
+    torch.testing.assert_close(half.image, image.reshape(3, 2, 4, 2, 3).mean(dim=(1, 3)))
+    torch.testing.assert_close(half.coverage[:, 0], torch.zeros(3))  # pixels 0-1 of each row: empty
+    torch.testing.assert_close(half.latents, latents[:, 1::2][:, :, 1::2])  # the nearest pixel centres
+    assert half.valid.shape == (3, 3, 4) and half.depth.shape == (3, 4)
+    torch.testing.assert_close(half.depth_input[1], prior[1::2, 1::2])
+    bare = ViewTargets(cam, image).half_size()
+    assert bare.coverage is None and bare.latents is None and bare.depth is None
+
+
+def test_half_resolution_renders_the_first_part_of_the_run_smaller(scene, monkeypatch) -> None:
+    from langfield.field import LanguageField
+
+    sizes = []
+    real = LanguageField.render
+    monkeypatch.setattr(
+        LanguageField,
+        "render",
+        lambda self, cam, **k: sizes.append((cam.width, cam.height)) or real(self, cam, **k),
+    )
+    cfg = lf.TrainConfig(
+        iterations=4, num_gaussians=200, init="random", lambda_virtual=0.0, half_resolution_until=0.5
+    )
+    field = lf.train(scene, cfg, progress=False)  # the room has language and depth targets
+    assert sizes == [(24, 18), (24, 18), (48, 36), (48, 36)]
+    assert field.meta["config"]["half_resolution_until"] == 0.5
+    assert all(torch.isfinite(p).all() for p in field.splats.values())
