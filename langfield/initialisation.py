@@ -411,7 +411,8 @@ def start_points(
         photo, colors, stats["dense"] = dense_points(
             cameras, images, bounds, replace(sweep, max_points=wanted)
         )
-        depth_maps = tuple(stats["dense"].pop("depths", None) or ()) or None
+        if "depths" in stats["dense"]:  # not when there is one view
+            depth_maps = tuple(stats["dense"].pop("depths"))
     if method == "sfm":
         photo, colors, stats["sfm"] = sfm_points(cameras, images)
         photo, colors = _thin(*_inside(photo, colors, bounds), wanted)

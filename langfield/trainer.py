@@ -451,16 +451,6 @@ def depth_inputs(
     return out
 
 
-def depth_targets(
-    scene: Scene, cfg: TrainConfig, targets: LanguageTargets | None
-) -> dict[str, LADTarget] | None:
-    """Each training view's depth prior and masks (:func:`depth_inputs`), prepared once for L_D."""
-    inputs = depth_inputs(scene, cfg, targets)
-    if inputs is None:
-        return None
-    return {name: LADTarget.from_view(seg, prior, scene.depth_kind) for name, (seg, prior) in inputs.items()}
-
-
 @dataclass(frozen=True)
 class ViewTargets:
     """What one training view supervises, at the size its camera renders.
@@ -764,16 +754,15 @@ def train(
         if refiner is not None and pseudo_step:
             pseudo = _pseudo_view_loss(field, refiner, list(cameras.values()), cfg, rng)
             loss = loss + cfg.lambda_refiner * pseudo
-        if cfg.lambda_visibility > 0:
-            seen = out.alpha.detach() > 0.5
-            depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
-            loss = loss + cfg.lambda_visibility * _visibility_loss(
-                depth_z, seen, cam, name, rendered, cfg.visibility_tolerance
-            )
-            rendered[name] = (cam, depth_z.detach(), seen)
-        if cfg.lambda_smooth > 0:
+        if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0:
             covered = out.alpha.detach() > 0.5
             depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
+        if cfg.lambda_visibility > 0:
+            loss = loss + cfg.lambda_visibility * _visibility_loss(
+                depth_z, covered, cam, name, rendered, cfg.visibility_tolerance
+            )
+            rendered[name] = (cam, depth_z.detach(), covered)
+        if cfg.lambda_smooth > 0:
             loss = loss + cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered)
         if cfg.lambda_anisotropy > 0:
             loss = loss + cfg.lambda_anisotropy * anisotropy_loss(
@@ -976,7 +965,9 @@ def _carve_free_space(
         violation, _ = free_space_violation(means, cam, depth, resolved, tolerance)
         free |= violation > 0
     removed = int(free.sum())
-    if removed and removed < means.shape[0]:
+    if removed == means.shape[0]:  # the stereo disagrees with every Gaussian: keep them rather than none
+        removed = 0
+    if removed:
         remove(field.splats, optimizers, state, free)
     return {"iteration": step, "removed": removed}
 

@@ -230,7 +230,8 @@ def test_virtual_term_runs_on_every_nth_iteration_from_its_start(
     assert len(calls) == steps
 
 
-def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(scene, monkeypatch) -> None:
+def _spy_render_sizes(monkeypatch) -> list[tuple[int, int]]:
+    """The (width, height) of every camera LanguageField.render is called with, from now on."""
     from langfield.field import LanguageField
 
     sizes = []
@@ -240,6 +241,11 @@ def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(sce
         "render",
         lambda self, cam, **k: sizes.append((cam.width, cam.height)) or real(self, cam, **k),
     )
+    return sizes
+
+
+def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(scene, monkeypatch) -> None:
+    sizes = _spy_render_sizes(monkeypatch)
     cfg = lf.TrainConfig(
         iterations=3, num_gaussians=200, init="random", language=False, depth=False, virtual_resolution=0.5
     )
@@ -499,6 +505,24 @@ def test_carving_removes_the_gaussians_in_front_of_a_resolved_surface_only() -> 
     assert state["grad2d"].shape == (3,)
 
 
+def test_carving_that_would_remove_every_gaussian_removes_none() -> None:
+    from types import SimpleNamespace
+
+    from langfield import gaussians as G
+    from langfield.strategy import DensifyStrategy
+    from langfield.trainer import _carve_free_space
+
+    a, _, depth, _ = _plane_views()
+    points = torch.tensor([[-0.2, 0.0, -1.0], [0.1, 0.0, -1.5]])  # both in front of the plane
+    splats = G.gaussians_at(points)
+    optimizers = {k: torch.optim.Adam([p]) for k, p in splats.items()}
+    state = DensifyStrategy().initialize_state(splats)
+    stereo = [(a, depth, torch.ones(30, 40, dtype=torch.bool))]
+    result = _carve_free_space(SimpleNamespace(splats=splats), stereo, optimizers, state, 0.03, 0)
+    assert result == {"iteration": 0, "removed": 0}
+    torch.testing.assert_close(splats["means"].detach(), points)
+
+
 def test_training_with_carving_records_what_it_removed(scene) -> None:
     cfg = lf.TrainConfig(iterations=3, num_gaussians=300, language=False, depth=False, carve_free_space=True)
     field = lf.train(scene, dataclasses.replace(cfg, refine_every=2), progress=False)
@@ -533,15 +557,7 @@ def test_a_view_at_half_size_averages_the_photo_and_samples_the_targets() -> Non
 
 
 def test_half_resolution_renders_the_first_part_of_the_run_smaller(scene, monkeypatch) -> None:
-    from langfield.field import LanguageField
-
-    sizes = []
-    real = LanguageField.render
-    monkeypatch.setattr(
-        LanguageField,
-        "render",
-        lambda self, cam, **k: sizes.append((cam.width, cam.height)) or real(self, cam, **k),
-    )
+    sizes = _spy_render_sizes(monkeypatch)
     cfg = lf.TrainConfig(
         iterations=4, num_gaussians=200, init="random", lambda_virtual=0.0, half_resolution_until=0.5
     )
