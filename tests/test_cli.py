@@ -236,7 +236,7 @@ def test_raster_throughput_counts_the_pairs_the_reference_binning_lists() -> Non
     from langfield import gaussians as G
     from langfield.bench import cpu_peak_gflops, pair_flops, raster_throughput, tile_pairs
     from langfield.camera import Camera
-    from langfield.raster.binning import bin_gaussians, opacity_aware_radii
+    from langfield.raster.binning import bin_gaussians
     from langfield.raster.projection import project_gaussians
 
     cam = Camera.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), width=40, height=28)
@@ -245,8 +245,7 @@ def test_raster_throughput_counts_the_pairs_the_reference_binning_lists() -> Non
     r = raster_throughput(means, quats, scales, opac, cam, channels=5, repeats=1)
     with torch.no_grad():
         pr = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 28)
-        radii = opacity_aware_radii(pr.radii, pr.conics, opac.reshape(-1))
-        offsets, _ = bin_gaussians(pr.means2d, radii, pr.depths, 40, 28)
+        offsets, _ = bin_gaussians(pr.means2d, pr.radii, pr.conics, opac.reshape(-1), pr.depths, 40, 28)
     assert r["pairs"] == tile_pairs(offsets, 40, 28) > 0
     assert r["flops_per_pair"] == pair_flops(5) and r["achieved_gflops"] > 0
     peak = cpu_peak_gflops()

@@ -9,9 +9,9 @@ import torch
 from conftest import random_gaussians
 
 from langfield.camera import Camera
-from langfield.raster.binning import bin_gaussians, opacity_aware_radii
+from langfield.raster.binning import TILE_SIZE, bin_gaussians
 from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
-from langfield.raster.projection import project_gaussians
+from langfield.raster.projection import Projected, project_gaussians
 
 
 def project_both(params, cam: Camera, seed: int = 0):
@@ -70,11 +70,88 @@ def test_binning_matches_reference(cam, seed):
     means, quats, scales, opacities, _ = random_gaussians(500, 1, seed=seed, log_scale=-2.0)
     opacities[:20] = 0.001  # below 1/255: never binned
     proj = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 30)
-    ref = bin_gaussians(
-        proj.means2d, opacity_aware_radii(proj.radii, proj.conics, opacities), proj.depths, 40, 30
-    )
+    ref = bin_gaussians(proj.means2d, proj.radii, proj.conics, opacities, proj.depths, 40, 30)
     fast = bin_gaussians_cpu(proj.means2d, proj.radii, proj.conics, opacities, proj.depths, 40, 30)
     assert torch.equal(ref[0], fast[0]) and torch.equal(ref[1], fast[1])
+
+
+def _needles(n: int, seed: int) -> list[torch.Tensor]:
+    """Elongated Gaussians (one axis 30x the others): their boxes hold many tiles the ellipse misses."""
+    params = random_gaussians(n, 3, seed=seed, log_scale=-3.0)
+    params[2][:, 0] *= 30.0
+    return params
+
+
+def _box_binning(proj, opacities, width: int, height: int):
+    """Every Gaussian in every tile of its 3-sigma square, nearest first: the uncut lists."""
+    tiles_x, tiles_y = -(-width // TILE_SIZE), -(-height // TILE_SIZE)
+    lists = [[] for _ in range(tiles_x * tiles_y)]
+    for i in torch.argsort(proj.depths, stable=True).tolist():
+        r = int(proj.radii[i])
+        if r <= 0 or opacities[i] < 1.0 / 255.0:
+            continue
+        mx, my = proj.means2d[i].tolist()
+        for ty in range(max(0, int((my - r) // TILE_SIZE)), min(tiles_y, int((my + r) // TILE_SIZE) + 1)):
+            for tx in range(max(0, int((mx - r) // TILE_SIZE)), min(tiles_x, int((mx + r) // TILE_SIZE) + 1)):
+                lists[ty * tiles_x + tx].append(i)
+    offsets = torch.tensor([0] + [len(x) for x in lists]).cumsum(0)
+    return offsets, torch.tensor([i for x in lists for i in x], dtype=torch.int64)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_binning_lists_exactly_the_tiles_a_gaussian_reaches(cam, seed):
+    # Brute force: a tile is listed iff some pixel centre in it gets alpha >= 1/255 (up to the margin).
+    means, quats, scales, opacities, _ = _needles(60, seed)
+    proj = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 30)
+    offsets, ids = bin_gaussians(proj.means2d, proj.radii, proj.conics, opacities, proj.depths, 40, 30)
+    ys, xs = torch.meshgrid(torch.arange(30.0) + 0.5, torch.arange(40.0) + 0.5, indexing="ij")
+    n_box = 0
+    for i in torch.nonzero(proj.radii > 0).squeeze(1).tolist():
+        a, b, c = proj.conics[i].double().tolist()
+        dx, dy = xs.double() - float(proj.means2d[i, 0]), ys.double() - float(proj.means2d[i, 1])
+        q = a * dx * dx + 2 * b * dx * dy + c * dy * dy
+        q_max = 2 * np.log(max(float(opacities[i]) * 255.0, 1.0))
+        for t in range(6):  # 3 x 2 tiles
+            tx, ty = t % 3, t // 3
+            block = q[ty * 16 : ty * 16 + 16, tx * 16 : tx * 16 + 16]
+            listed = bool((ids[offsets[t] : offsets[t + 1]] == i).any())
+            if block.min() <= q_max:
+                assert listed, (i, t)
+            elif block.min() > 1.001 * q_max:
+                assert not listed, (i, t)
+        n_box += int(proj.radii[i] > 0)
+    assert n_box > 30
+    # The cut matters for needles: fewer pairs than the 3-sigma squares list.
+    assert ids.numel() < 0.8 * _box_binning(proj, opacities, 40, 30)[1].numel()
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_cut_tiles_change_no_pixel_and_no_gradient(cam, backend):
+    from langfield.raster import composite
+    from langfield.raster.cpu_backend import rasterize_cpu
+    from langfield.raster.torch_backend import rasterize_torch
+
+    means, quats, scales, opacities, colors = _needles(80, 2)
+    proj = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 30)
+    fn = rasterize_torch if backend == "torch" else rasterize_cpu
+    results = []
+    for lists in ("cut", "box"):
+        m2d = proj.means2d.detach().clone().requires_grad_(True)
+        cn = proj.conics.detach().clone().requires_grad_(True)
+        op = opacities.clone().requires_grad_(True)
+        col = colors.clone().requires_grad_(True)
+        bg = torch.zeros(3)
+        if lists == "cut":
+            p2 = Projected(m2d, cn, proj.depths, proj.radii)
+            image, alpha = composite(p2, op, col, 40, 30, background=bg, backend=backend)
+        else:
+            offsets, ids = _box_binning(proj, opacities, 40, 30)
+            image, alpha = fn(m2d, cn, op, col, offsets, ids, 40, 30, bg)
+        g = torch.Generator().manual_seed(0)
+        ((image * torch.randn(image.shape, generator=g)).sum() + alpha.sum()).backward()
+        results.append([image.detach(), alpha.detach(), m2d.grad, cn.grad, op.grad, col.grad])
+    for a, b in zip(*results, strict=True):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6)
 
 
 def test_binning_of_nothing(cam):

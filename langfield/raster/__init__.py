@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from langfield.camera import Camera
-from langfield.raster.binning import bin_gaussians, opacity_aware_radii
+from langfield.raster.binning import bin_gaussians
 from langfield.raster.projection import NEAR_PLANE, Projected, project_gaussians, quat_to_rotmat
 from langfield.raster.torch_backend import rasterize_torch
 
@@ -65,8 +65,9 @@ def composite(
     opacities = opacities.reshape(-1)
     name = resolve_backend(backend)
     if name == "torch":
-        radii = opacity_aware_radii(projected.radii, projected.conics, opacities)
-        offsets, ids = bin_gaussians(projected.means2d, radii, projected.depths, width, height)
+        offsets, ids = bin_gaussians(
+            projected.means2d, projected.radii, projected.conics, opacities, projected.depths, width, height
+        )
         fn = rasterize_torch
     else:
         from langfield.raster.cpu_backend import rasterize_cpu

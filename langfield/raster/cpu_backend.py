@@ -127,7 +127,7 @@ def _forward(
                         continue
                     o = go[j]
                     mx = gx[j]
-                    kf = _F(start + j + 1)
+                    kf = _F(j + 1)  # tile-local: exact in float32 for any list length that fits memory
                     n_hit = _ZERO
                     n_live = _ZERO
                     # Branch-free over the row's 16 pixels, so LLVM vectorises it.
@@ -157,7 +157,7 @@ def _forward(
                         for ch in range(n_ch):
                             out[y, x, ch] = acc[ch, p] + trans[p] * background[ch]
                         t_final[y, x] = trans[p]
-                        n_contrib[y, x] = np.int32(last[p])
+                        n_contrib[y, x] = np.int32(start + np.int64(last[p]))
 
 
 @njit(parallel=True, fastmath=True, cache=True)
@@ -205,6 +205,33 @@ def _backward(
             prefix = np.empty((n_ch, TILE_SIZE), np.float32)
             total = np.empty((n_ch, TILE_SIZE), np.float32)
             g_c = np.empty((n_ch, TILE_SIZE), np.float32)
+            hits = np.empty(TILE_SIZE, np.float32)
+            lastf = np.empty(TILE_SIZE, np.float32)
+            xs = np.empty(TILE_SIZE, np.float32)
+            for p in range(TILE_SIZE):
+                xs[p] = _F(x0 + p) + _HALF
+            # The tile's Gaussians up to its last contributor, gathered once into contiguous arrays:
+            # every row walks them again.
+            tile_last = start
+            for r in range(min(TILE_SIZE, height - y0)):
+                for p in range(min(TILE_SIZE, width - x0)):
+                    tile_last = max(tile_last, n_contrib[y0 + r, x0 + p])
+            m = tile_last - start
+            gx = np.empty(m, np.float32)
+            gy = np.empty(m, np.float32)
+            ga = np.empty(m, np.float32)
+            gb = np.empty(m, np.float32)
+            gc = np.empty(m, np.float32)
+            go = np.empty(m, np.float32)
+            gq = np.empty(m, np.float32)
+            gcol = np.empty((m, n_ch), np.float32)
+            for j in range(m):
+                g = gids[start + j]
+                gx[j], gy[j] = means2d[g, 0], means2d[g, 1]
+                ga[j], gb[j], gc[j] = conics[g, 0], conics[g, 1], conics[g, 2]
+                go[j], gq[j] = opac[g], q_max[g] * _ROW_MARGIN
+                for ch in range(n_ch):
+                    gcol[j, ch] = colors[g, ch]
             for r in range(TILE_SIZE):
                 y = y0 + r
                 if y >= height:
@@ -227,35 +254,39 @@ def _backward(
                             total[ch, p] = _ZERO
                             g_c[ch, p] = _ZERO
                     row_last = max(row_last, last[p])
+                    lastf[p] = _F(max(last[p] - start, 0))
                     trans[p] = _ONE
                 prefix[:, :] = _ZERO
                 py = _F(y) + _HALF
                 for k in range(start, row_last):
-                    g = gids[k]
-                    ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
-                    mx, my = means2d[g, 0], means2d[g, 1]
+                    j = k - start
+                    ca, cb, cc = ga[j], gb[j], gc[j]
+                    mx, my = gx[j], gy[j]
                     dy = py - my
-                    if dy * dy * (ca * cc - cb * cb) > ca * q_max[g] * _ROW_MARGIN:
+                    if dy * dy * (ca * cc - cb * cb) > ca * gq[j]:
                         continue
-                    o = opac[g]
-                    any_hit = False
+                    o = go[j]
+                    n_hit = _ZERO
+                    kf = _F(j)
+                    # Branch-free over the row's 16 pixels (as the forward), so LLVM vectorises it.
                     for p in range(TILE_SIZE):
-                        dx = _F(x0 + p) + _HALF - mx
+                        dx = xs[p] - mx
                         q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
                         gauss = _exp_neg(-_HALF * q)
                         raw = o * gauss
                         gauss_px[p] = gauss
                         alpha = min(_ALPHA_MAX, raw)
-                        hit = (alpha >= _ALPHA_MIN) and (q >= _ZERO) and (k < last[p])
-                        weight[p] = alpha * trans[p] if hit else _ZERO
+                        hit = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO) & (kf < lastf[p]))
+                        hits[p] = hit
+                        weight[p] = hit * alpha * trans[p]
                         inv_1m[p] = _ONE / (_ONE - alpha)
                         # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
-                        d_alpha[p] = g_a[p] * t_end[p] * inv_1m[p] if hit else _ZERO
-                        any_hit = any_hit or hit
-                    if not any_hit:
+                        d_alpha[p] = hit * (g_a[p] * t_end[p] * inv_1m[p])
+                        n_hit += hit
+                    if n_hit == _ZERO:
                         continue
                     for ch in range(n_geo):
-                        col = colors[g, ch]
+                        col = gcol[j, ch]
                         s = _ZERO
                         for p in range(TILE_SIZE):
                             w = weight[p]
@@ -263,7 +294,7 @@ def _backward(
                             prefix[ch, p] += w * col
                             # dC/d alpha_i = c_i T_i - (C - prefix_i) / (1 - alpha_i)
                             d = col * trans[p] - (total[ch, p] - prefix[ch, p]) * inv_1m[p]
-                            d_alpha[p] += g_c[ch, p] * d if w != _ZERO else _ZERO
+                            d_alpha[p] += hits[p] * (g_c[ch, p] * d)
                         g_colors[k, ch] += s
                     # Channels from n_geo on pass no gradient to the geometry: only their own values'.
                     for ch in range(n_geo, n_ch):
@@ -278,20 +309,20 @@ def _backward(
                     gcc = _ZERO
                     gop = _ZERO
                     for p in range(TILE_SIZE):
-                        w = weight[p]
-                        if w != _ZERO:
-                            dx = _F(x0 + p) + _HALF - mx
-                            gauss = gauss_px[p]
-                            raw = o * gauss
-                            trans[p] = trans[p] * (_ONE - min(_ALPHA_MAX, raw))
-                            if raw < _ALPHA_MAX:  # clamped alpha passes no gradient
-                                gop += d_alpha[p] * gauss
-                                g_q = -_HALF * raw * d_alpha[p]
-                                gca += g_q * dx * dx
-                                gcb += g_q * _F(2.0) * dx * dy
-                                gcc += g_q * dy * dy
-                                gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
-                                gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
+                        hit = hits[p]
+                        dx = xs[p] - mx
+                        gauss = gauss_px[p]
+                        raw = o * gauss
+                        trans[p] = trans[p] * (_ONE - hit * min(_ALPHA_MAX, raw))
+                        # a clamped alpha passes no gradient
+                        da = d_alpha[p] * _F(raw < _ALPHA_MAX)
+                        gop += da * gauss
+                        g_q = -_HALF * raw * da
+                        gca += g_q * dx * dx
+                        gcb += g_q * _F(2.0) * dx * dy
+                        gcc += g_q * dy * dy
+                        gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
+                        gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
                     g_means2d[k, 0] += gm_x
                     g_means2d[k, 1] += gm_y
                     g_conics[k, 0] += gca
