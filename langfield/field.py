@@ -50,6 +50,18 @@ TEXT_TABLE_FILE = "text_embeddings.npz"
 HARD_DEPTH_OPACITY = 0.99  # mu in eq. 7 (the paper; DNGaussian uses 0.95)
 
 
+class GridFeatures(NamedTuple):
+    """The colour grid read at the Gaussians' centres, shared by every render of one set of means.
+
+    Attributes:
+        corners: the cell look-up ``(rows, frac)`` of :meth:`langfield.hashgrid.HashGrid.corners`.
+        features: [N, L F] interpolated grid features (the colour MLP's view-independent input).
+    """
+
+    corners: tuple[Tensor, Tensor]
+    features: Tensor
+
+
 class Render(NamedTuple):
     """One rendered view.
 
@@ -152,6 +164,7 @@ class LanguageField(nn.Module):
         language: bool = True,
         opacity_scale: Tensor | None = None,
         background: Tensor | None = None,
+        grid: GridFeatures | None = None,
     ) -> Render:
         """Renders colour, soft depth and alpha (and optionally hard depth) from ``camera``.
 
@@ -163,6 +176,9 @@ class LanguageField(nn.Module):
             opacity_scale: [N] factors on the opacities (Gaussian dropout during training).
             background: [3] colour behind the Gaussians instead of the field's (random backgrounds in
                 training).
+            grid: :meth:`grid_features` of the current means, when several views are rendered from the
+                same Gaussians (a training step's virtual view): the grid is then read and
+                differentiated once, not once per view.
         """
         backend = backend or self.meta.get("backend", "auto")
         means = self.splats["means"]
@@ -176,13 +192,10 @@ class LanguageField(nn.Module):
         center = torch.as_tensor(camera.center, dtype=means.dtype)
         offset = means - center
         dist = torch.sqrt((offset * offset).sum(-1, keepdim=True) + 1e-12)
-        memo = self._rows_memo
-        same = memo is not None and memo[0] is means and memo[1] == means._version
-        corners = self.color.grid.corners(means, memo[2] if same else None)
-        self._rows_memo = (means, means._version, corners[0])
-        rgb = self.color(means, offset / dist, corners)
+        grid = self.grid_features() if grid is None else grid
+        rgb = self.color.rgb(grid.features, offset / dist)
         features = [rgb, dist]
-        latents = self.gaussian_latents(corners) if language else None
+        latents = self.gaussian_latents(grid.corners) if language else None
         if latents is not None:
             features.append(latents.reshape(-1, LANGUAGE_CHANNELS))
         features = torch.cat(features, dim=-1)
@@ -228,6 +241,15 @@ class LanguageField(nn.Module):
             depth_hard,
             rendered_latents,
         )
+
+    def grid_features(self) -> GridFeatures:
+        """The colour grid at the current means (see :class:`GridFeatures`)."""
+        means = self.splats["means"]
+        memo = self._rows_memo
+        same = memo is not None and memo[0] is means and memo[1] == means._version
+        corners = self.color.grid.corners(means, memo[2] if same else None)
+        self._rows_memo = (means, means._version, corners[0])
+        return GridFeatures(corners, self.color.grid.interpolate(*corners))
 
     def query(
         self,

@@ -104,10 +104,10 @@ class ColorField(nn.Module):
                 f"and {tuple(view_dirs.shape)}"
             )
         h = self.grid.interpolate(*corners) if corners is not None else self.grid(means)
-        return self._rgb(h, view_dirs)
+        return self.rgb(h, view_dirs)
 
-    def _rgb(self, h: Tensor, view_dirs: Tensor) -> Tensor:
-        """RGB from grid features h [N, L F] and unit directions [N, 3]."""
+    def rgb(self, h: Tensor, view_dirs: Tensor) -> Tensor:
+        """RGB from grid features h [N, L F] (``self.grid`` read at the means) and unit directions [N, 3]."""
         x = torch.cat([h, frequency_encoding(view_dirs, self.n_freqs)], dim=-1)
         return torch.sigmoid(self.mlp(x))
 
@@ -132,7 +132,7 @@ class ColorField(nn.Module):
             h = self.grid(m)  # the grid is evaluated once per Gaussian, the MLP once per direction
             hh = h[:, None, :].expand(-1, n_dirs, -1).reshape(-1, h.shape[-1])
             dd = dirs[None].expand(m.shape[0], -1, -1).reshape(-1, 3)
-            out.append(self._rgb(hh, dd).view(m.shape[0], n_dirs, 3).mean(dim=1))
+            out.append(self.rgb(hh, dd).view(m.shape[0], n_dirs, 3).mean(dim=1))
         return torch.cat(out) if out else means.new_zeros(0, 3)
 
     def mlp_parameters(self) -> Iterator[nn.Parameter]:

@@ -34,7 +34,7 @@ from encoders.cache import read_feature_cache
 from langfield import gaussians as G
 from langfield.camera import Camera
 from langfield.depth_loss import LAMBDA_SA, LADTarget, depth_loss
-from langfield.field import LanguageField, Render, color_field_spec
+from langfield.field import GridFeatures, LanguageField, Render, color_field_spec
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
 from langfield.initialisation import INIT_METHODS, StartPoints, start_points
@@ -737,22 +737,26 @@ def train(
         target = view.image
         if cover is not None and behind is not None:  # a photo's backdrop shows the random colour
             target = backdrop_target(view.image, cover, behind)
+        grid = field.grid_features()  # read once, shared by this step's renders
         out = field.render(
             cam,
             backend=cfg.backend,
             hard_depth=view.depth is not None,
             opacity_scale=keep,
             background=behind,
+            grid=grid,
         )
         loss = color_loss(out.rgb, target, cfg.lambda_dssim)
         if cover is not None and cfg.lambda_empty > 0:
             loss = loss + cfg.lambda_empty * (out.alpha * (1.0 - cover)).mean()
         virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
         if cfg.lambda_virtual > 0 and virtual_step:
-            loss = loss + cfg.lambda_virtual * _virtual_view_loss(field, cam, target, out, keep, cfg, rng)
+            loss = loss + cfg.lambda_virtual * _virtual_view_loss(
+                field, cam, target, out, keep, cfg, rng, grid
+            )
         pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0
         if refiner is not None and pseudo_step:
-            pseudo = _pseudo_view_loss(field, refiner, list(cameras.values()), cfg, rng)
+            pseudo = _pseudo_view_loss(field, refiner, list(cameras.values()), cfg, rng, grid)
             loss = loss + cfg.lambda_refiner * pseudo
         if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0:
             covered = out.alpha.detach() > 0.5
@@ -880,6 +884,7 @@ def _virtual_view_loss(
     keep: Tensor | None,
     cfg: TrainConfig,
     rng: np.random.Generator,
+    grid: GridFeatures | None = None,
 ) -> Tensor:
     """Binocular consistency (Han et al. 2024): the training view's depth must warp a sideways-shifted
     render onto the training image. L1 + D-SSIM over the pixels the field covers and the warp reaches."""
@@ -895,7 +900,7 @@ def _virtual_view_loss(
         depth, image, cover = area_resize([depth[..., None], image, covered[..., None].float()], cam)
         depth, covered = depth[..., 0], cover[..., 0] > 0.5
     shifted = field.render(
-        shifted_camera(cam, right, up), backend=cfg.backend, language=False, opacity_scale=keep
+        shifted_camera(cam, right, up), backend=cfg.backend, language=False, opacity_scale=keep, grid=grid
     )
     warped, valid = virtual_view_warp(shifted.rgb, depth, cam, right, up)
     mask = (valid & covered).float()
@@ -973,12 +978,17 @@ def _carve_free_space(
 
 
 def _pseudo_view_loss(
-    field: LanguageField, refiner: Any, cameras: list[Camera], cfg: TrainConfig, rng: np.random.Generator
+    field: LanguageField,
+    refiner: Any,
+    cameras: list[Camera],
+    cfg: TrainConfig,
+    rng: np.random.Generator,
+    grid: GridFeatures | None = None,
 ) -> Tensor:
     """Renders a virtual camera, lets the refiner clean the render, and returns the confidence-weighted
     L1 to the cleaned image (a fixed target: no gradient flows through the refiner)."""
     cam = sample_virtual_cameras(cameras, 1, rng)[0]
-    out = field.render(cam, backend=cfg.backend, language=False)
+    out = field.render(cam, backend=cfg.backend, language=False, grid=grid)
     cleaned, confidence = refiner.refine(out.rgb.detach().clamp(0, 1).numpy())
     target = torch.from_numpy(np.ascontiguousarray(cleaned))
     weight = torch.from_numpy(np.ascontiguousarray(confidence))[..., None]

@@ -270,3 +270,21 @@ def test_reused_rows_give_the_same_corners() -> None:
     rows, frac = grid.corners(x)
     again_rows, again_frac = grid.corners(x, rows)
     assert again_rows is rows and torch.equal(again_frac, frac)
+
+
+def test_shared_grid_features_give_the_same_renders_and_gradients(scene, saved) -> None:
+    # Two views rendered from one grid read: same images, same gradients as two separate reads.
+    cams = [scene.camera(n) for n in scene.names("train")[:2]]
+    grads, images = [], []
+    for shared in (False, True):
+        field = LanguageField.load(saved).requires_grad_(True)
+        grid = field.grid_features() if shared else None
+        outs = [field.render(cam, grid=grid) for cam in cams]
+        sum(o.rgb.square().sum() + o.depth.sum() + o.latents.square().sum() for o in outs).backward()
+        images.append([o.rgb.detach() for o in outs])
+        grads.append({name: p.grad.clone() for name, p in field.named_parameters() if p.grad is not None})
+    for a, b in zip(*images, strict=True):
+        assert torch.equal(a, b)
+    assert grads[0].keys() == grads[1].keys() and "color.grid.table" in grads[0]
+    for name in grads[0]:
+        assert torch.allclose(grads[0][name], grads[1][name], rtol=1e-5, atol=1e-7), name
