@@ -233,3 +233,28 @@ def test_detached_channels_pass_no_gradient_to_geometry(small_camera):
             assert grad.grad is None or torch.count_nonzero(grad.grad) == 0, f"{backend}: {name}"
         assert torch.count_nonzero(leaves[4].grad[:, 2:]) > 0
         assert torch.count_nonzero(leaves[4].grad[:, :2]) == 0
+
+
+def test_row_skip_is_exact_against_a_dense_scan():
+    # The CPU kernels skip a (Gaussian, tile row) when q exceeds the bound over the whole row segment;
+    # a dense scan of the segment must agree wherever the bound is not within rounding of the minimum.
+    import numpy as np
+
+    from langfield.raster.cpu_backend import _row_misses
+
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(3000):
+        a, c = rng.uniform(0.001, 2.0, 2)
+        b = rng.uniform(-0.999, 0.999) * np.sqrt(a * c)  # positive definite
+        dy, lo = rng.uniform(-30, 30, 2)
+        hi = lo + 15.0
+        bound = rng.uniform(0.5, 12.0)
+        xs = np.linspace(lo, hi, 20001)
+        q_min = (a * xs * xs + 2 * b * xs * dy + c * dy * dy).min()
+        if abs(q_min - bound) < 1e-3 * bound:
+            continue
+        f = np.float32
+        assert _row_misses(f(a), f(b), f(c), f(dy), f(lo), f(hi), f(bound)) == (q_min > bound)
+        checked += 1
+    assert checked > 2500

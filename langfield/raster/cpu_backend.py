@@ -5,8 +5,9 @@ Same arithmetic as :mod:`langfield.raster.torch_backend` (the oracle), arranged 
 - tiles run in parallel (``prange`` over workers, each given tiles of about equal total work); inside
   a tile, one 16-pixel row is processed at a time, so the innermost loops run over 16 contiguous
   pixels and the compiler vectorises them;
-- a Gaussian is skipped for a whole row when even the row's closest point to its centre gets
-  alpha < 1/255 (``q_min = dy^2 det / a`` for the conic [[a, b], [b, c]]), which changes no pixel;
+- a Gaussian is skipped for a whole row of a tile when even the row segment's closest point to its
+  centre gets alpha < 1/255 (for the conic [[a, b], [b, c]], q along the row is smallest at
+  ``dx = -b dy / a``, clamped to the segment), which changes no pixel;
 - ``exp`` is a polynomial: alpha only matters for ``q/2 <= ln 255 < 6``, where
   ``exp(x) = (p(x / 16))^16`` with a degree-7 Taylor ``p`` is accurate to ~1e-7 and needs no SVML;
 - the backward walks each pixel's list front to back again and recomputes the transmittance, rather
@@ -60,6 +61,22 @@ def _exp_neg(x):
     return p * p
 
 
+@njit(inline="always", fastmath=True)
+def _row_misses(a, b, c, dy, lo, hi, q_bound):
+    """Whether q = a dx^2 + 2 b dx dy + c dy^2 exceeds q_bound for every dx in [lo, hi].
+
+    Along the row q is smallest at dx = -b dy / a (a > 0); compared as a dx = -b dy, without dividing.
+    """
+    t = -b * dy
+    if t < a * lo:
+        dx = lo
+    elif t > a * hi:
+        dx = hi
+    else:  # the minimum lies inside the segment: q_min = dy^2 det / a
+        return dy * dy * (a * c - b * b) > a * q_bound
+    return a * dx * dx + _F(2.0) * b * dx * dy + c * dy * dy > q_bound
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _forward(
     offsets,
@@ -88,6 +105,8 @@ def _forward(
             start, end = offsets[tile], offsets[tile + 1]
             x0 = (tile % tiles_x) * TILE_SIZE
             y0 = (tile // tiles_x) * TILE_SIZE
+            x_lo = _F(x0) + _HALF  # the tile's first and last pixel centres in x
+            x_hi = _F(min(x0 + TILE_SIZE, width) - 1) + _HALF
             trans = np.empty(TILE_SIZE, np.float32)
             live = np.empty(TILE_SIZE, np.float32)
             weight = np.empty(TILE_SIZE, np.float32)
@@ -123,7 +142,7 @@ def _forward(
                 for j in range(m):
                     ca, cb2, cc = ga[j], gb[j], gc[j]
                     dy = py - gy[j]
-                    if dy * dy * (ca * cc - _F(0.25) * cb2 * cb2) > ca * gq[j]:
+                    if _row_misses(ca, _HALF * cb2, cc, dy, x_lo - gx[j], x_hi - gx[j], gq[j]):
                         continue
                     o = go[j]
                     mx = gx[j]
@@ -194,6 +213,8 @@ def _backward(
             start = offsets[tile]  # the row loop stops at the last contributing Gaussian, before the end
             x0 = (tile % tiles_x) * TILE_SIZE
             y0 = (tile // tiles_x) * TILE_SIZE
+            x_lo = _F(x0) + _HALF  # the tile's first and last pixel centres in x
+            x_hi = _F(min(x0 + TILE_SIZE, width) - 1) + _HALF
             trans = np.empty(TILE_SIZE, np.float32)
             t_end = np.empty(TILE_SIZE, np.float32)
             g_a = np.empty(TILE_SIZE, np.float32)
@@ -263,7 +284,7 @@ def _backward(
                     ca, cb, cc = ga[j], gb[j], gc[j]
                     mx, my = gx[j], gy[j]
                     dy = py - my
-                    if dy * dy * (ca * cc - cb * cb) > ca * gq[j]:
+                    if _row_misses(ca, cb, cc, dy, x_lo - mx, x_hi - mx, gq[j]):
                         continue
                     o = go[j]
                     n_hit = _ZERO
