@@ -77,6 +77,29 @@ def _row_misses(a, b, c, dy, lo, hi, q_bound):
     return a * dx * dx + _F(2.0) * b * dx * dy + c * dy * dy > q_bound
 
 
+@njit(inline="always")
+def _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors):
+    """The m Gaussians listed from `start`, gathered once into contiguous arrays: a tile's 16 rows
+    each walk them again. q bounds carry the row test's margin."""
+    n_ch = colors.shape[1]
+    gx = np.empty(m, np.float32)
+    gy = np.empty(m, np.float32)
+    ga = np.empty(m, np.float32)
+    gb = np.empty(m, np.float32)
+    gc = np.empty(m, np.float32)
+    go = np.empty(m, np.float32)
+    gq = np.empty(m, np.float32)
+    gcol = np.empty((m, n_ch), np.float32)
+    for j in range(m):
+        g = gids[start + j]
+        gx[j], gy[j] = means2d[g, 0], means2d[g, 1]
+        ga[j], gb[j], gc[j] = conics[g, 0], conics[g, 1], conics[g, 2]
+        go[j], gq[j] = opac[g], q_max[g] * _ROW_MARGIN
+        for ch in range(n_ch):
+            gcol[j, ch] = colors[g, ch]
+    return gx, gy, ga, gb, gc, go, gq, gcol
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _forward(
     offsets,
@@ -113,20 +136,8 @@ def _forward(
             last = np.empty(TILE_SIZE, np.float32)
             xs = np.empty(TILE_SIZE, np.float32)
             acc = np.empty((n_ch, TILE_SIZE), np.float32)
-            # The tile's Gaussians, gathered once into contiguous arrays: every row walks them again.
             m = end - start
-            gx = np.empty(m, np.float32)
-            gy = np.empty(m, np.float32)
-            ga = np.empty(m, np.float32)
-            gb = np.empty(m, np.float32)
-            gc = np.empty(m, np.float32)
-            go = np.empty(m, np.float32)
-            gq = np.empty(m, np.float32)
-            for j in range(m):
-                g = gids[start + j]
-                gx[j], gy[j] = means2d[g, 0], means2d[g, 1]
-                ga[j], gb[j], gc[j] = conics[g, 0], _F(2.0) * conics[g, 1], conics[g, 2]
-                go[j], gq[j] = opac[g], q_max[g] * _ROW_MARGIN
+            gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors)
             for p in range(TILE_SIZE):
                 xs[p] = _F(x0 + p) + _HALF
             for r in range(TILE_SIZE):
@@ -140,9 +151,10 @@ def _forward(
                 acc[:, :] = _ZERO
                 py = _F(y) + _HALF
                 for j in range(m):
-                    ca, cb2, cc = ga[j], gb[j], gc[j]
+                    ca, cb, cc = ga[j], gb[j], gc[j]
+                    cb2 = _F(2.0) * cb
                     dy = py - gy[j]
-                    if _row_misses(ca, _HALF * cb2, cc, dy, x_lo - gx[j], x_hi - gx[j], gq[j]):
+                    if _row_misses(ca, cb, cc, dy, x_lo - gx[j], x_hi - gx[j], gq[j]):
                         continue
                     o = go[j]
                     mx = gx[j]
@@ -165,7 +177,7 @@ def _forward(
                         n_live += live[p]
                     if n_hit > _ZERO:
                         for ch in range(n_ch):
-                            col = colors[gids[start + j], ch]
+                            col = gcol[j, ch]
                             for p in range(TILE_SIZE):
                                 acc[ch, p] += weight[p] * col
                     if n_live == _ZERO:
@@ -231,28 +243,13 @@ def _backward(
             xs = np.empty(TILE_SIZE, np.float32)
             for p in range(TILE_SIZE):
                 xs[p] = _F(x0 + p) + _HALF
-            # The tile's Gaussians up to its last contributor, gathered once into contiguous arrays:
-            # every row walks them again.
+            # The tile's Gaussians up to its last contributor.
             tile_last = start
             for r in range(min(TILE_SIZE, height - y0)):
                 for p in range(min(TILE_SIZE, width - x0)):
                     tile_last = max(tile_last, n_contrib[y0 + r, x0 + p])
             m = tile_last - start
-            gx = np.empty(m, np.float32)
-            gy = np.empty(m, np.float32)
-            ga = np.empty(m, np.float32)
-            gb = np.empty(m, np.float32)
-            gc = np.empty(m, np.float32)
-            go = np.empty(m, np.float32)
-            gq = np.empty(m, np.float32)
-            gcol = np.empty((m, n_ch), np.float32)
-            for j in range(m):
-                g = gids[start + j]
-                gx[j], gy[j] = means2d[g, 0], means2d[g, 1]
-                ga[j], gb[j], gc[j] = conics[g, 0], conics[g, 1], conics[g, 2]
-                go[j], gq[j] = opac[g], q_max[g] * _ROW_MARGIN
-                for ch in range(n_ch):
-                    gcol[j, ch] = colors[g, ch]
+            gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors)
             for r in range(TILE_SIZE):
                 y = y0 + r
                 if y >= height:
