@@ -144,3 +144,27 @@ def test_coarser_language_grid_is_recorded_and_reloads(scene, tmp_path):
     cam = scene.camera(scene.names("test")[0])
     with torch.no_grad():
         assert torch.allclose(loaded.render(cam).latents, f.render(cam).latents, atol=1e-6)
+
+
+def test_autoencoder_is_trained_once_per_features_and_config():
+    from encoders.autoencoder import AutoencoderConfig
+    from langfield.trainer import fit_autoencoder
+
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(40, 512)).astype(np.float32)
+    cfg = AutoencoderConfig(iterations=5, seed=0)
+    first, stats = fit_autoencoder(features, cfg, progress=False)
+    again, stats_again = fit_autoencoder(features.copy(), cfg, progress=False)
+    assert "reused" not in stats and stats_again["reused"] == 1.0
+    assert stats_again["seconds"] == stats["seconds"]
+    assert again is not first
+    for a, b in zip(first.state_dict().values(), again.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    with torch.no_grad():  # a caller editing its copy does not reach the next caller's
+        next(again.parameters()).add_(1.0)
+    third, _ = fit_autoencoder(features, cfg, progress=False)
+    assert torch.equal(next(third.parameters()), next(first.parameters()))
+    # Other features or another config train again.
+    _, other = fit_autoencoder(features[:-1], cfg, progress=False)
+    _, longer = fit_autoencoder(features, AutoencoderConfig(iterations=6, seed=0), progress=False)
+    assert "reused" not in other and "reused" not in longer
