@@ -137,7 +137,9 @@ def _forward(
             xs = np.empty(TILE_SIZE, np.float32)
             acc = np.empty((n_ch, TILE_SIZE), np.float32)
             m = end - start
-            gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors)
+            gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(
+                gids, start, m, means2d, conics, opac, q_max, colors
+            )
             for p in range(TILE_SIZE):
                 xs[p] = _F(x0 + p) + _HALF
             for r in range(TILE_SIZE):
@@ -249,7 +251,9 @@ def _backward(
                 for p in range(min(TILE_SIZE, width - x0)):
                     tile_last = max(tile_last, n_contrib[y0 + r, x0 + p])
             m = tile_last - start
-            gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors)
+            gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(
+                gids, start, m, means2d, conics, opac, q_max, colors
+            )
             for r in range(TILE_SIZE):
                 y = y0 + r
                 if y >= height:
