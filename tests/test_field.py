@@ -287,4 +287,7 @@ def test_shared_grid_features_give_the_same_renders_and_gradients(scene, saved) 
         assert torch.equal(a, b)
     assert grads[0].keys() == grads[1].keys() and "color.grid.table" in grads[0]
     for name in grads[0]:
-        assert torch.allclose(grads[0][name], grads[1][name], rtol=1e-5, atol=1e-7), name
+        # Summation order only: the tolerance scales with the largest gradient (a means gradient of
+        # about 500 differs by 3e-5 where the grid's rows are summed in another order).
+        scale = float(grads[0][name].abs().max())
+        assert torch.allclose(grads[0][name], grads[1][name], rtol=1e-5, atol=1e-6 * scale + 1e-7), name

@@ -247,7 +247,14 @@ def _spy_render_sizes(monkeypatch) -> list[tuple[int, int]]:
 def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(scene, monkeypatch) -> None:
     sizes = _spy_render_sizes(monkeypatch)
     cfg = lf.TrainConfig(
-        iterations=3, num_gaussians=200, init="random", language=False, depth=False, virtual_resolution=0.5
+        iterations=3,
+        num_gaussians=200,
+        init="random",
+        language=False,
+        depth=False,
+        virtual_resolution=0.5,
+        virtual_every=1,
+        half_resolution_until=0.0,
     )
     field = lf.train(scene, cfg, progress=False)
     assert sizes == [(48, 36), (24, 18)] * 3
