@@ -473,7 +473,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, baseline, "
         "no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, no-virtual, no-random-background, "
-        "no-empty-space, no-opacity-decay, anisotropy, smooth (default: full, no-lop, no-lad, no-depth, "
+        "no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, full-resolution, "
+        "virtual-every-step, half-size-virtual (default: full, no-lop, no-lad, no-depth, "
         "per-gaussian, random-init, no-dropout, no-virtual, no-random-background, no-empty-space, "
         "no-opacity-decay; those a scene cannot use skipped)",
     )

@@ -169,6 +169,18 @@ def test_every_ablation_case_changes_the_defaults():
             assert replace(base, **change) != base, case  # a case equal to the defaults trains full again
 
 
+def test_ablate_help_names_every_case():
+    import argparse
+
+    from langfield.ablate import CASES
+    from langfield.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    cases_help = next(a.help for a in sub.choices["ablate"]._actions if a.dest == "cases")
+    listed = cases_help.split("(default")[0]
+    assert [c for c in CASES if c not in listed.replace(",", " ").split()] == []
+
+
 def test_cases_that_would_train_full_again_are_skipped(room):
     from langfield.ablate import run_ablation
 
