@@ -632,14 +632,15 @@ def make_optimizers(
 ) -> dict[str, torch.optim.Optimizer]:
     """One Adam per Gaussian parameter (so densification can edit each one) and one for the colour field.
 
-    PyTorch's fused Adam: the same update in one kernel per parameter instead of a dozen element-wise
-    passes (2.5x faster on the CPU for the built-in scene's parameters; equal to the loop within float
-    rounding, 2e-7 after 20 steps); its moments are the same ``exp_avg`` / ``exp_avg_sq`` tensors that
-    densification edits.
+    Adam's multi-tensor ("foreach") update: a few whole-tensor passes instead of a dozen element-wise
+    ones per parameter (2.1x faster on the CPU for the built-in scene's parameters, equal to the loop
+    within float rounding). Not the fused kernel, although it is faster still: it writes the parameters
+    without bumping their version counter, so ``LanguageField.grid_features`` would reuse the hash-grid
+    rows of means that have moved.
     """
     lrs = dict(G.learning_rates(extent), lang=cfg.per_gaussian_language_lr)
     opts: dict[str, torch.optim.Optimizer] = {
-        name: torch.optim.Adam([{"params": [p], "lr": lrs[name], "name": name}], eps=1e-15, fused=True)
+        name: torch.optim.Adam([{"params": [p], "lr": lrs[name], "name": name}], eps=1e-15, foreach=True)
         for name, p in field.splats.items()
     }
     opts["color"] = torch.optim.Adam(
@@ -648,7 +649,7 @@ def make_optimizers(
             {"params": list(field.color.mlp_parameters()), "lr": cfg.mlp_lr},
         ],
         eps=1e-15,
-        fused=True,
+        foreach=True,
     )
     if field.language is not None:
         opts["language"] = torch.optim.Adam(
@@ -657,7 +658,7 @@ def make_optimizers(
                 {"params": list(field.language.mlp_parameters()), "lr": cfg.mlp_lr},
             ],
             eps=1e-15,
-            fused=True,
+            foreach=True,
         )
     return opts
 

@@ -64,6 +64,23 @@ def test_round_trip_gives_identical_render(field, saved, scene) -> None:
         assert diff < 1e-6, name
 
 
+def test_grid_rows_follow_an_optimizer_step(scene) -> None:
+    """The colour grid's rows are memoised per means version: the trainer's optimizer step must be seen
+    (PyTorch's fused Adam writes without bumping the version and would leave stale rows)."""
+    from langfield.trainer import make_optimizers
+
+    fld = train(scene, TrainConfig(iterations=1, num_gaussians=N, seed=0), progress=False)
+    means = fld.splats["means"]
+    fld.grid_features()  # fills the memo
+    opts = make_optimizers(fld, 1.0, TrainConfig())
+    opts["means"].param_groups[0]["lr"] = 0.05  # moves many means into other cells of the fine levels
+    means.grad = torch.randn(means.shape, generator=torch.Generator().manual_seed(0))
+    opts["means"].step()
+    fresh = fld.color.grid.corners(means.detach())[0]
+    assert not torch.equal(fresh, fld._rows_memo[2])  # the step did change cells
+    assert torch.equal(fld.grid_features().corners[0], fresh)
+
+
 def test_round_trip_preserves_meta(field, saved) -> None:
     loaded = LanguageField.load(saved)
     expected = _json_normalised(field.meta)

@@ -20,8 +20,8 @@ N = 40
 def _setup(seed: int = 0, single_adam: bool = False, fused: bool = False):
     """Gaussians with an extra "lang" entry, optimizers that have taken one step, and strategy state.
 
-    ``fused``: PyTorch's fused Adam, the trainer's (its step count is a tensor; its moments must follow
-    the rows all the same)."""
+    ``fused``: PyTorch's fused Adam (its step count is a tensor; its moments must follow the rows all
+    the same)."""
     params = G.init_gaussians(BOUNDS, N, seed=seed)
     params["lang"] = nn.Parameter(torch.randn(N, 9, generator=torch.Generator().manual_seed(seed)))
     lrs = {**G.learning_rates(2.0), "lang": 1e-3}
