@@ -172,9 +172,8 @@ def num_gaussians_for_scene(bounds: np.ndarray, image_pixels: int, n_views: int)
     supervision, not the volume: ``0.15 x image_pixels x n_views``. Densification adds Gaussians where
     the images ask for detail. Images of 333 x 333 pixels or more (fern, DTU, lego with 3 views) reach
     the 50,000 cap. On the built-in scene (3 views of 160x120) the first pruning keeps about 40 % of the
-    start whatever its size, and a smaller start trains faster at no loss: seed 0, 1500 iterations,
-    novel-view PSNR / mIoU 26.03 / 0.516 from 14,400 (a quarter of the pixels), 26.26 / 0.521 from
-    9,000, 26.33 / 0.519 from 6,000, 25.53 / 0.475 from 4,000 (docs/figures.md). Reference points:
+    start whatever its size, so a bigger start pays for the first 600 iterations for nothing: 8,640
+    instead of 14,400 measured over three seeds in docs/figures.md ("A smaller start"). Reference points:
     DNGaussian initialises 10k random points for Blender (8 views of 800x800), 1k for DTU and 50 x the
     COLMAP cloud's largest side for LLFF.
     The bounds are checked but do not enter the rule.
