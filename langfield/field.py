@@ -117,9 +117,11 @@ class LanguageField(nn.Module):
         self.folder: Path | None = None
         # The language grid may reuse the colour grid's cell look-up when both share the layout.
         self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
-        # The colour grid's table rows for the means as they were last rendered, (means, version, rows):
-        # a training iteration renders the same Gaussians twice (the virtual view).
-        self._rows_memo: tuple[Tensor, int, Tensor] | None = None
+        # The colour grid's table rows for the means as they were last rendered, (a copy of the means,
+        # rows): views rendered from unmoved Gaussians (evaluation, queries) skip the hashing. Keyed on
+        # the values, not the tensor's version counter, which writes such as the fused Adam kernel's
+        # do not bump.
+        self._rows_memo: tuple[Tensor, Tensor] | None = None
 
     @property
     def has_language(self) -> bool:
@@ -246,9 +248,10 @@ class LanguageField(nn.Module):
         """The colour grid at the current means (see :class:`GridFeatures`)."""
         means = self.splats["means"]
         memo = self._rows_memo
-        same = memo is not None and memo[0] is means and memo[1] == means._version
-        corners = self.color.grid.corners(means, memo[2] if same else None)
-        self._rows_memo = (means, means._version, corners[0])
+        same = memo is not None and torch.equal(memo[0], means.detach())
+        corners = self.color.grid.corners(means, memo[1] if same else None)
+        if not same:
+            self._rows_memo = (means.detach().clone(), corners[0])
         return GridFeatures(corners, self.color.grid.interpolate(*corners))
 
     def query(
