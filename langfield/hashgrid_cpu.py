@@ -9,8 +9,10 @@ against, values and gradients), arranged for the CPU:
 - inside a level the points run in order, so the corner rows ``[8, L, N]`` and the fractions
   ``[3, L, N]`` are read as 8 + 3 contiguous streams, and each corner's ``F`` features are one
   contiguous row of the point-major ``[L T, F]`` table;
-- the weights are recomputed in the backward (3 products per corner) rather than saved, and the
-  table gradient and the gradient of the fractions come out of the same walk over the corners.
+- the 8 weights are recomputed in the backward rather than saved, and the table gradient and the
+  gradient of the fractions come out of the same walk over the corners; the fractions' gradient is
+  formed once per point from the 8 corner dot products (float accumulators of the table's dtype, no
+  per-corner branches: 5x faster than a branch per corner and axis on the colour grid).
 
 In PyTorch the same work is a gather, a broadcast product and a sum forward, and a product and an
 ``index_add_`` back, each through memory; the language grid (6 features per row) spent ~40 ms per
@@ -29,34 +31,39 @@ from langfield.raster.cpu_geometry import configure_numba_threads
 configure_numba_threads()
 
 
-@njit(parallel=True, cache=True)
+@njit(inline="always")
+def _corner_weights(fx, fy, fz, w):  # pragma: no cover - numba
+    """The 8 trilinear weights into ``w``, corner ``c = 4 cx + 2 cy + cz``."""
+    one = np.float32(1.0)
+    gx, gy, gz = one - fx, one - fy, one - fz
+    w[0], w[1], w[2], w[3] = gx * gy * gz, gx * gy * fz, gx * fy * gz, gx * fy * fz
+    w[4], w[5], w[6], w[7] = fx * gy * gz, fx * gy * fz, fx * fy * gz, fx * fy * fz
+
+
+@njit(parallel=True, fastmath=True, cache=True)
 def _forward(table, rows, frac, rows_per_level, out, bad):  # pragma: no cover - numba
     n_groups = out.shape[0]
     n_feat = table.shape[1]
     per_group = n_feat // n_groups
     n_levels, n = rows.shape[1], rows.shape[2]
-    one = np.float32(1.0)
     for level in prange(n_levels):
         lo = level * rows_per_level
         hi = lo + rows_per_level
         col = level * per_group
         acc = np.empty(n_feat, dtype=table.dtype)
+        w = np.empty(8, dtype=table.dtype)
         for i in range(n):
-            fx = frac[0, level, i]
-            fy = frac[1, level, i]
-            fz = frac[2, level, i]
-            acc[:] = 0.0
+            _corner_weights(frac[0, level, i], frac[1, level, i], frac[2, level, i], w)
+            for f in range(n_feat):
+                acc[f] = 0.0
             for c in range(8):
                 r = rows[c, level, i]
                 if r < lo or r >= hi:
                     bad[level] = 1
                     continue
-                wx = fx if c & 4 else one - fx
-                wy = fy if c & 2 else one - fy
-                wz = fz if c & 1 else one - fz
-                w = wx * wy * wz
+                wc = w[c]
                 for f in range(n_feat):
-                    acc[f] += w * table[r, f]
+                    acc[f] += wc * table[r, f]
             f = 0
             for g in range(n_groups):
                 for k in range(per_group):
@@ -64,9 +71,9 @@ def _forward(table, rows, frac, rows_per_level, out, bad):  # pragma: no cover -
                     f += 1
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, fastmath=True, cache=True)
 def _backward(
-    table, rows, frac, grad_out, rows_per_level, grad_table, grad_frac, want_table, want_frac, bad
+    table, rows, frac, grad_out, rows_per_level, grad_table, grad_frac, bad
 ):  # pragma: no cover - numba
     n_groups = grad_out.shape[0]
     n_feat = table.shape[1]
@@ -77,43 +84,51 @@ def _backward(
         lo = level * rows_per_level
         hi = lo + rows_per_level
         col = level * per_group
-        go = np.empty(n_feat, dtype=grad_out.dtype)
+        go = np.empty(n_feat, dtype=table.dtype)
+        w = np.empty(8, dtype=table.dtype)
+        d = np.empty(8, dtype=table.dtype)  # dL/dw_c: the output gradient dotted with corner c's row
         for i in range(n):
-            fx = frac[0, level, i]
-            fy = frac[1, level, i]
-            fz = frac[2, level, i]
+            fx, fy, fz = frac[0, level, i], frac[1, level, i], frac[2, level, i]
+            _corner_weights(fx, fy, fz, w)
             f = 0
             for g in range(n_groups):
                 for k in range(per_group):
                     go[f] = grad_out[g, i, col + k]
                     f += 1
-            gx = 0.0
-            gy = 0.0
-            gz = 0.0
             for c in range(8):
                 r = rows[c, level, i]
                 if r < lo or r >= hi:
                     bad[level] = 1
+                    d[c] = 0.0
                     continue
-                wx = fx if c & 4 else one - fx
-                wy = fy if c & 2 else one - fy
-                wz = fz if c & 1 else one - fz
-                if want_table:
-                    w = wx * wy * wz
-                    for f in range(n_feat):
-                        grad_table[r, f] += w * go[f]
-                if want_frac:
-                    # dL/dw_c, then dw_c/df_a = (+1 or -1) x the other two axes' factors.
-                    d = 0.0
-                    for f in range(n_feat):
-                        d += go[f] * table[r, f]
-                    gx += (d if c & 4 else -d) * (wy * wz)
-                    gy += (d if c & 2 else -d) * (wx * wz)
-                    gz += (d if c & 1 else -d) * (wx * wy)
-            if want_frac:
-                grad_frac[0, level, i] = gx
-                grad_frac[1, level, i] = gy
-                grad_frac[2, level, i] = gz
+                wc = w[c]
+                acc = np.float32(0.0)  # unifies to float64 for a float64 table
+                # Both gradients from one loop over the row (2.5x faster than a loop for each).
+                for f in range(n_feat):
+                    acc += go[f] * table[r, f]
+                    grad_table[r, f] += wc * go[f]
+                d[c] = acc
+            # dw_c / df_a is +-1 times the other two axes' factors: the corner pairs that differ in
+            # axis a, weighted by the other two axes' factors.
+            gx, gy, gz = one - fx, one - fy, one - fz
+            grad_frac[0, level, i] = (
+                (d[4] - d[0]) * gy * gz
+                + (d[5] - d[1]) * gy * fz
+                + (d[6] - d[2]) * fy * gz
+                + (d[7] - d[3]) * fy * fz
+            )
+            grad_frac[1, level, i] = (
+                (d[2] - d[0]) * gx * gz
+                + (d[3] - d[1]) * gx * fz
+                + (d[6] - d[4]) * fx * gz
+                + (d[7] - d[5]) * fx * fz
+            )
+            grad_frac[2, level, i] = (
+                (d[1] - d[0]) * gx * gy
+                + (d[3] - d[2]) * gx * fy
+                + (d[5] - d[4]) * fx * gy
+                + (d[7] - d[6]) * fx * fy
+            )
 
 
 def _check(bad: np.ndarray, rows_per_level: int) -> None:
@@ -158,9 +173,9 @@ class InterpolateRowsNumba(torch.autograd.Function):
         if not (want_table or want_frac):
             return None, None, None, None, None
         grad_out = grad_out.to(table.dtype).contiguous()
-        # The kernel skips the gradient it was not asked for; a 1-row stand-in fills the argument.
-        grad_table = torch.zeros_like(table) if want_table else table.new_zeros(1, table.shape[1])
-        grad_frac = torch.empty_like(frac) if want_frac else frac.new_zeros(3, 1, 1)
+        # The kernel always writes both gradients (one branch-free walk); an unwanted one is dropped.
+        grad_table = torch.zeros_like(table)
+        grad_frac = torch.empty_like(frac)
         bad = np.zeros(rows.shape[1], dtype=np.uint8)
         _backward(
             table.numpy(),
@@ -170,8 +185,6 @@ class InterpolateRowsNumba(torch.autograd.Function):
             ctx.rows_per_level,
             grad_table.numpy(),
             grad_frac.numpy(),
-            want_table,
-            want_frac,
             bad,
         )
         _check(bad, ctx.rows_per_level)
