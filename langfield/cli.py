@@ -98,8 +98,9 @@ def train_config(args: argparse.Namespace):
     )
     # Flags left unset keep TrainConfig's defaults.
     given = {name: getattr(args, name) for name in SPARSE_VIEW_FLAGS if getattr(args, name) is not None}
-    if args.lambda_opacity is not None:
-        given["lambda_opacity"] = args.lambda_opacity
+    for name in ("lambda_opacity", "language_start"):
+        if getattr(args, name) is not None:
+            given[name] = getattr(args, name)
     return replace(cfg, **given)
 
 
@@ -344,6 +345,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.25,
         help="language grid's finest resolution as a fraction of the colour grid's (default 0.25; 1: same)",
+    )
+    p.add_argument(
+        "--language-start",
+        type=float,
+        default=None,
+        help="fraction of the run before the language term starts (default 0.33, the half-size start)",
     )
     p.add_argument(
         "--lambda-opacity",

@@ -563,6 +563,27 @@ def test_a_view_at_half_size_averages_the_photo_and_samples_the_targets() -> Non
     assert bare.coverage is None and bare.latents is None and bare.depth is None
 
 
+def test_language_trains_only_from_its_start_and_leaves_the_geometry_as_it_was(scene, monkeypatch) -> None:
+    from langfield.field import LanguageField
+
+    calls = []
+    real = LanguageField.render
+    spy = lambda self, cam, **k: calls.append(k.get("language", True)) or real(self, cam, **k)  # noqa: E731
+    monkeypatch.setattr(LanguageField, "render", spy)
+    base = dict(iterations=4, num_gaussians=200, init="random", lambda_virtual=0.0, lop=False, densify=False)
+    late = lf.train(scene, lf.TrainConfig(**base, language_start=0.5), progress=False)
+    assert calls == [False, False, True, True]
+    early = lf.train(scene, lf.TrainConfig(**base), progress=False)
+    # L_LF reads detached positions and passes no gradient to the geometry: the same Gaussians.
+    for key in ("means", "log_scales", "quats", "opacity_logits"):
+        torch.testing.assert_close(late.splats[key], early.splats[key])
+    assert late.meta["config"]["language_start"] == 0.5
+    # Two language steps moved the language grid less far from its start than four.
+    fresh = lf.train(scene, lf.TrainConfig(**dict(base, iterations=0)), progress=False)
+    moved = [(f.language.grid.table - fresh.language.grid.table).abs().sum() for f in (late, early)]
+    assert 0 < moved[0] < moved[1]
+
+
 def test_half_resolution_renders_the_first_part_of_the_run_smaller(scene, monkeypatch) -> None:
     sizes = _spy_render_sizes(monkeypatch)
     cfg = lf.TrainConfig(
