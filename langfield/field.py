@@ -35,7 +35,7 @@ from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
 from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
 from langfield.ply import write_gaussian_ply
-from langfield.raster import Backend, rasterize
+from langfield.raster import Backend, rasterize, rasterize_with_second_pass
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -205,31 +205,36 @@ class LanguageField(nn.Module):
         background = torch.cat([behind, torch.zeros(features.shape[1] - 3)])
         # Channels past rgb + distance (the latents) pass no gradient to the geometry: L_LF trains only
         # the language features, in the same rasterization pass.
-        out = rasterize(
-            means,
-            quats,
-            scales,
-            opac,
-            features,
-            camera,
-            background=background,
-            backend=backend,
-            geometry_channels=4,
-        )
         depth_hard = None
         if hard_depth:
             # Eq. 7: every opacity replaced by mu, scales and rotations detached, so the hard depth's
-            # gradient moves only the means.
-            hard = rasterize(
+            # gradient moves only the means. One pass with the main render on the cpu backend.
+            out, hard = rasterize_with_second_pass(
                 means,
-                quats.detach(),
-                scales.detach(),
+                quats,
+                scales,
+                opac,
+                features,
+                camera,
                 torch.full_like(opac, HARD_DEPTH_OPACITY) * (1.0 if keep is None else keep),
                 dist,
-                camera,
+                background=background,
                 backend=backend,
+                geometry_channels=4,
             )
-            depth_hard = hard.image[..., 0]
+            depth_hard = hard[..., 0]
+        else:
+            out = rasterize(
+                means,
+                quats,
+                scales,
+                opac,
+                features,
+                camera,
+                background=background,
+                backend=backend,
+                geometry_channels=4,
+            )
         rendered_latents = None
         if latents is not None:
             h, w = out.image.shape[:2]

@@ -7,7 +7,7 @@ import torch
 from conftest import random_gaussians
 
 from langfield.camera import Camera
-from langfield.raster import rasterize
+from langfield.raster import rasterize, rasterize_with_second_pass
 from langfield.raster.projection import project_gaussians, quat_to_rotmat
 
 NAMES = ("means", "quats", "scales", "opacities", "features")
@@ -258,3 +258,63 @@ def test_row_skip_is_exact_against_a_dense_scan():
         assert _row_misses(f(a), f(b), f(c), f(dy), f(lo), f(hi), f(bound)) == (q_min > bound)
         checked += 1
     assert checked > 2500
+
+
+def _two_passes(backend: str, params, camera, second_opacities, seed: int = 2):
+    """rasterize_with_second_pass on fresh leaves: outputs and every leaf's gradient under random weights."""
+    leaves = [p.detach().clone().requires_grad_(True) for p in params]
+    means, quats, scales, opacities, features = leaves
+    second_values = means.norm(dim=-1, keepdim=True)  # a distance, as the hard depth renders
+    out, second = rasterize_with_second_pass(
+        means, quats, scales, opacities, features, camera, second_opacities, second_values,
+        background=torch.full((features.shape[1],), 0.3), backend=backend, geometry_channels=2,
+    )  # fmt: skip
+    g = torch.Generator().manual_seed(seed)
+    loss = sum((t * torch.randn(t.shape, generator=g)).sum() for t in (out.image, out.alpha, second))
+    loss.backward()
+    return (out.image, out.alpha, second), [p.grad for p in leaves], out.means2d.grad
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_second_pass_in_one_walk_equals_two_passes(small_camera, seed):
+    # The cpu backend composites both passes in one walk over the tiles; the torch backend makes two
+    # separate rasterize calls (the reference). Some opacities above the second pass's 0.99, some
+    # Gaussians dropped from it (opacity 0), as dropout leaves them.
+    params = random_gaussians(150, 4, seed=seed, log_scale=-2.0)
+    params[3][:10] = 0.995
+    second = torch.full((150,), 0.99)
+    second[10:40] = 0.0
+    ref, ref_grads, ref_m2d = _two_passes("torch", params, small_camera, second)
+    fast, fast_grads, fast_m2d = _two_passes("cpu", params, small_camera, second)
+    for a, b in zip(ref, fast, strict=True):
+        assert (a - b).abs().max() <= 1e-4
+    # The main pass's screen-space gradient (densification's statistic) leaves the second pass out.
+    for name, a, b in zip(NAMES, ref_grads, fast_grads, strict=True):
+        rel = ((a - b).norm() / a.norm().clamp_min(1e-12)).item()
+        assert rel <= 1e-3, f"{name}: relative gradient error {rel:.2e}"
+    assert ((ref_m2d - fast_m2d).norm() / ref_m2d.norm()).item() <= 1e-3
+
+
+def test_second_pass_moves_only_what_it_renders_with(small_camera):
+    # The second pass alone: rotations and scales detached, the first pass's features untouched.
+    params = random_gaussians(80, 3, seed=4, log_scale=-2.0)
+    leaves = [p.detach().clone().requires_grad_(True) for p in params]
+    means, quats, scales, opacities, features = leaves
+    out, second = rasterize_with_second_pass(
+        means, quats, scales, opacities, features, small_camera, torch.full((80,), 0.99), means[:, 2:3]
+    )
+    second.sum().backward()
+    assert means.grad.abs().sum() > 0
+    for other in (quats, scales, opacities, features, out.means2d):
+        assert other.grad is None or other.grad.abs().sum() == 0
+
+
+def test_second_pass_rejects_footprints_that_differ(small_camera):
+    from langfield.raster.cpu_backend import rasterize_pair_cpu
+
+    m, c = torch.zeros(2, 2), torch.ones(2, 3)
+    with pytest.raises(ValueError, match="footprints"):
+        rasterize_pair_cpu(
+            m, c, torch.ones(2), torch.ones(2, 1), m + 1, c, torch.ones(2), torch.ones(2, 1),
+            torch.zeros(2, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), 16, 16, torch.zeros(1),
+        )  # fmt: skip

@@ -155,6 +155,71 @@ def rasterize(
     return RasterOutput(image, alpha, projected.means2d, projected.radii)
 
 
+def rasterize_with_second_pass(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    camera: Camera,
+    second_opacities: Tensor,
+    second_values: Tensor,
+    *,
+    background: Tensor | None = None,
+    backend: Backend = "auto",
+    near: float = NEAR_PLANE,
+    geometry_channels: int | None = None,
+) -> tuple[RasterOutput, Tensor]:
+    """:func:`rasterize`, and a second pass of the same Gaussians with rotations and scales detached,
+    other opacities and one value channel on a zero background: the hard depth of eq. 7.
+
+    Equal to two :func:`rasterize` calls, ``rasterize(means, quats.detach(), scales.detach(),
+    second_opacities, second_values, camera)`` being the second (the ``torch`` backend makes exactly
+    those). The ``cpu`` backend composites both in one walk over the tiles: the footprints are equal, so
+    each pixel's Gaussian weight is computed once for both (the hard depth then costs ~1/3 of its own
+    pass), and each pass's gradients still go to its own inputs.
+
+    Returns:
+        The first pass's :class:`RasterOutput` and the second pass's image [H, W, 1].
+    """
+    second_opacities = second_opacities.reshape(-1)
+    second_values = second_values.reshape(-1, 1)
+    if resolve_backend(backend) == "torch":
+        out = rasterize(
+            means, quats, scales, opacities, features, camera,
+            background=background, backend=backend, near=near, geometry_channels=geometry_channels,
+        )  # fmt: skip
+        second = rasterize(
+            means, quats.detach(), scales.detach(), second_opacities, second_values, camera,
+            backend=backend, near=near,
+        )  # fmt: skip
+        return out, second.image
+    from langfield.kernels import notice_once
+    from langfield.raster.cpu_backend import rasterize_pair_cpu
+    from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
+
+    notice_once()
+    view = (camera.world_to_camera(), camera.intrinsics(), camera.width, camera.height, near)
+    projected = project_gaussians_cpu(means, quats, scales, *view)
+    detached = project_gaussians_cpu(means, quats.detach(), scales.detach(), *view)
+    if projected.means2d.requires_grad:
+        projected.means2d.retain_grad()
+    n_ch = features.shape[1]
+    background = features.new_zeros(n_ch) if background is None else background
+    background = torch.as_tensor(background, dtype=features.dtype).reshape(n_ch)
+    opacities = opacities.reshape(-1)
+    # Either pass's Gaussians: a list binned by the larger opacity holds every one that reaches a tile.
+    reach = torch.maximum(opacities.detach(), second_opacities.detach())
+    p, w, h = projected, camera.width, camera.height
+    offsets, ids = bin_gaussians_cpu(p.means2d, p.radii, p.conics, reach, p.depths, w, h)
+    image, alpha, second, _ = rasterize_pair_cpu(
+        projected.means2d, projected.conics, opacities, features,
+        detached.means2d, detached.conics, second_opacities, second_values,
+        offsets, ids, camera.width, camera.height, background, geometry_channels,
+    )  # fmt: skip
+    return RasterOutput(image, alpha, projected.means2d, projected.radii), second
+
+
 __all__ = [
     "BACKENDS",
     "RasterOutput",
@@ -162,5 +227,6 @@ __all__ = [
     "project_gaussians",
     "quat_to_rotmat",
     "rasterize",
+    "rasterize_with_second_pass",
     "resolve_backend",
 ]

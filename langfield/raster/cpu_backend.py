@@ -77,6 +77,21 @@ def _row_misses(a, b, c, dy, lo, hi, q_bound):
     return a * dx * dx + _F(2.0) * b * dx * dy + c * dy * dy > q_bound
 
 
+@njit(inline="always", fastmath=True)
+def _row_misses_pair(a, b, c, dy, lo, hi, q1, q2):
+    """:func:`_row_misses` against two bounds at once (the row's smallest q is found once)."""
+    t = -b * dy
+    if t < a * lo:
+        dx = lo
+    elif t > a * hi:
+        dx = hi
+    else:
+        v = dy * dy * (a * c - b * b)
+        return v > a * q1, v > a * q2
+    q = a * dx * dx + _F(2.0) * b * dx * dy + c * dy * dy
+    return q > q1, q > q2
+
+
 @njit(inline="always")
 def _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors):
     """The m Gaussians listed from `start`, gathered once into contiguous arrays: a tile's 16 rows
@@ -100,6 +115,19 @@ def _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors):
     return gx, gy, ga, gb, gc, go, gq, gcol
 
 
+@njit(inline="always")
+def _gather_pair(gids, start, m, opac_h, q_max_h, values_h):
+    """The second stream's opacity, row bound and value per listed Gaussian (none without one)."""
+    k = m if opac_h.shape[0] > 0 else 0
+    go = np.empty(k, np.float32)
+    gq = np.empty(k, np.float32)
+    gv = np.empty(k, np.float32)
+    for j in range(k):
+        g = gids[start + j]
+        go[j], gq[j], gv[j] = opac_h[g], q_max_h[g] * _ROW_MARGIN, values_h[g]
+    return go, gq, gv
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _forward(
     offsets,
@@ -118,8 +146,16 @@ def _forward(
     out,
     t_final,
     n_contrib,
+    opac_h,
+    q_max_h,
+    values_h,
+    background_h,
+    out_h,
+    t_final_h,
+    n_contrib_h,
 ):
     n_ch = colors.shape[1]
+    pair = opac_h.shape[0] > 0  # a second, one-channel stream (see rasterize_pair_cpu)
     # Each worker takes a precomputed, balanced set of tiles (see _balance): prange splits its range
     # statically, and the tiles' work differs by 2x across an image.
     for w in prange(worker_starts.shape[0] - 1):
@@ -136,10 +172,16 @@ def _forward(
             last = np.empty(TILE_SIZE, np.float32)
             xs = np.empty(TILE_SIZE, np.float32)
             acc = np.empty((n_ch, TILE_SIZE), np.float32)
+            gauss = np.empty(TILE_SIZE, np.float32)
+            trans_h = np.empty(TILE_SIZE, np.float32)
+            live_h = np.empty(TILE_SIZE, np.float32)
+            last_h = np.empty(TILE_SIZE, np.float32)
+            acc_h = np.empty(TILE_SIZE, np.float32)
             m = end - start
             gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(
                 gids, start, m, means2d, conics, opac, q_max, colors
             )
+            goh, gqh, gvh = _gather_pair(gids, start, m, opac_h, q_max_h, values_h)
             for p in range(TILE_SIZE):
                 xs[p] = _F(x0 + p) + _HALF
             for r in range(TILE_SIZE):
@@ -150,39 +192,76 @@ def _forward(
                     trans[p] = _ONE
                     last[p] = _ZERO
                     live[p] = _ONE if x0 + p < width else _ZERO
+                    trans_h[p] = _ONE
+                    last_h[p] = _ZERO
+                    live_h[p] = live[p]
+                    acc_h[p] = _ZERO
                 acc[:, :] = _ZERO
+                n_live = _ZERO  # each stream's live pixels, kept from the last Gaussian that reached it
+                for p in range(TILE_SIZE):
+                    n_live += live[p]
+                n_live_h = n_live if pair else _ZERO
                 py = _F(y) + _HALF
                 for j in range(m):
                     ca, cb, cc = ga[j], gb[j], gc[j]
                     cb2 = _F(2.0) * cb
                     dy = py - gy[j]
-                    if _row_misses(ca, cb, cc, dy, x_lo - gx[j], x_hi - gx[j], gq[j]):
+                    if pair:
+                        miss, miss_h = _row_misses_pair(
+                            ca, cb, cc, dy, x_lo - gx[j], x_hi - gx[j], gq[j], gqh[j]
+                        )
+                    else:
+                        miss, miss_h = _row_misses(ca, cb, cc, dy, x_lo - gx[j], x_hi - gx[j], gq[j]), True
+                    if miss and miss_h:
                         continue
                     o = go[j]
                     mx = gx[j]
                     kf = _F(j + 1)  # tile-local: exact in float32 for any list length that fits memory
                     n_hit = _ZERO
-                    n_live = _ZERO
-                    # Branch-free over the row's 16 pixels, so LLVM vectorises it.
-                    for p in range(TILE_SIZE):
-                        dx = xs[p] - mx
-                        q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
-                        alpha = min(_ALPHA_MAX, o * _exp_neg(-_HALF * q))
-                        ok = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO)) * live[p]
-                        test = trans[p] * (_ONE - alpha)
-                        hit = ok * _F(test >= _T_MIN)
-                        live[p] = live[p] - ok + hit
-                        weight[p] = hit * alpha * trans[p]
-                        trans[p] = trans[p] + hit * (test - trans[p])
-                        last[p] = max(last[p], hit * kf)
-                        n_hit += hit
-                        n_live += live[p]
-                    if n_hit > _ZERO:
-                        for ch in range(n_ch):
-                            col = gcol[j, ch]
-                            for p in range(TILE_SIZE):
-                                acc[ch, p] += weight[p] * col
-                    if n_live == _ZERO:
+                    if miss:  # only the second stream reaches this row: the footprint alone
+                        for p in range(TILE_SIZE):
+                            dx = xs[p] - mx
+                            q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+                            gauss[p] = _exp_neg(-_HALF * q) * _F(q >= _ZERO)
+                    else:
+                        n_live = _ZERO
+                        # Branch-free over the row's 16 pixels, so LLVM vectorises it.
+                        for p in range(TILE_SIZE):
+                            dx = xs[p] - mx
+                            q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+                            e = _exp_neg(-_HALF * q)
+                            gauss[p] = e * _F(q >= _ZERO)
+                            alpha = min(_ALPHA_MAX, o * e)
+                            ok = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO)) * live[p]
+                            test = trans[p] * (_ONE - alpha)
+                            hit = ok * _F(test >= _T_MIN)
+                            live[p] = live[p] - ok + hit
+                            weight[p] = hit * alpha * trans[p]
+                            trans[p] = trans[p] + hit * (test - trans[p])
+                            last[p] = max(last[p], hit * kf)
+                            n_hit += hit
+                            n_live += live[p]
+                        if n_hit > _ZERO:
+                            for ch in range(n_ch):
+                                col = gcol[j, ch]
+                                for p in range(TILE_SIZE):
+                                    acc[ch, p] += weight[p] * col
+                    if not miss_h:
+                        # The same Gaussian's footprint (gauss) with the second stream's opacity.
+                        oh = goh[j]
+                        val = gvh[j]
+                        n_live_h = _ZERO
+                        for p in range(TILE_SIZE):
+                            alpha = min(_ALPHA_MAX, oh * gauss[p])
+                            ok = _F(alpha >= _ALPHA_MIN) * live_h[p]
+                            test = trans_h[p] * (_ONE - alpha)
+                            hit = ok * _F(test >= _T_MIN)
+                            live_h[p] = live_h[p] - ok + hit
+                            acc_h[p] += hit * alpha * trans_h[p] * val
+                            trans_h[p] = trans_h[p] + hit * (test - trans_h[p])
+                            last_h[p] = max(last_h[p], hit * kf)
+                            n_live_h += live_h[p]
+                    if n_live + n_live_h == _ZERO:
                         break
                 for p in range(TILE_SIZE):
                     x = x0 + p
@@ -191,6 +270,10 @@ def _forward(
                             out[y, x, ch] = acc[ch, p] + trans[p] * background[ch]
                         t_final[y, x] = trans[p]
                         n_contrib[y, x] = np.int32(start + np.int64(last[p]))
+                        if pair:
+                            out_h[y, x, 0] = acc_h[p] + trans_h[p] * background_h
+                            t_final_h[y, x] = trans_h[p]
+                            n_contrib_h[y, x] = np.int32(start + np.int64(last_h[p]))
 
 
 @njit(parallel=True, fastmath=True, cache=True)
@@ -217,8 +300,21 @@ def _backward(
     g_opac,
     g_colors,
     n_geo,
+    opac_h,
+    q_max_h,
+    values_h,
+    out_h,
+    t_final_h,
+    n_contrib_h,
+    grad_out_h,
+    grad_alpha_h,
+    g_means2d_h,
+    g_conics_h,
+    g_opac_h,
+    g_values_h,
 ):
     n_ch = colors.shape[1]
+    pair = opac_h.shape[0] > 0
     # Each worker takes a precomputed, balanced set of tiles (see _balance): prange splits its range
     # statically, and the tiles' work differs by 2x across an image.
     for w in prange(worker_starts.shape[0] - 1):
@@ -243,17 +339,33 @@ def _backward(
             hits = np.empty(TILE_SIZE, np.float32)
             lastf = np.empty(TILE_SIZE, np.float32)
             xs = np.empty(TILE_SIZE, np.float32)
+            q_ok = np.empty(TILE_SIZE, np.float32)
+            # The second stream's per-pixel state (one channel).
+            trans_h = np.empty(TILE_SIZE, np.float32)
+            t_end_h = np.empty(TILE_SIZE, np.float32)
+            g_a_h = np.empty(TILE_SIZE, np.float32)
+            g_c_h = np.empty(TILE_SIZE, np.float32)
+            total_h = np.empty(TILE_SIZE, np.float32)
+            prefix_h = np.empty(TILE_SIZE, np.float32)
+            lastf_h = np.empty(TILE_SIZE, np.float32)
+            hits_h = np.empty(TILE_SIZE, np.float32)
+            weight_h = np.empty(TILE_SIZE, np.float32)
+            inv_h = np.empty(TILE_SIZE, np.float32)
+            d_alpha_h = np.empty(TILE_SIZE, np.float32)
             for p in range(TILE_SIZE):
                 xs[p] = _F(x0 + p) + _HALF
-            # The tile's Gaussians up to its last contributor.
+            # The tile's Gaussians up to its last contributor (of either stream).
             tile_last = start
             for r in range(min(TILE_SIZE, height - y0)):
                 for p in range(min(TILE_SIZE, width - x0)):
                     tile_last = max(tile_last, n_contrib[y0 + r, x0 + p])
+                    if pair:
+                        tile_last = max(tile_last, n_contrib_h[y0 + r, x0 + p])
             m = tile_last - start
             gx, gy, ga, gb, gc, go, gq, gcol = _gather_tile(
                 gids, start, m, means2d, conics, opac, q_max, colors
             )
+            goh, gqh, gvh = _gather_pair(gids, start, m, opac_h, q_max_h, values_h)
             for r in range(TILE_SIZE):
                 y = y0 + r
                 if y >= height:
@@ -278,6 +390,22 @@ def _backward(
                     row_last = max(row_last, last[p])
                     lastf[p] = _F(max(last[p] - start, 0))
                     trans[p] = _ONE
+                    trans_h[p] = _ONE
+                    prefix_h[p] = _ZERO
+                    lastf_h[p] = _ZERO
+                    if pair and x0 + p < width:
+                        last_h = n_contrib_h[y, x0 + p]
+                        row_last = max(row_last, last_h)
+                        lastf_h[p] = _F(max(last_h - start, 0))
+                        t_end_h[p] = t_final_h[y, x0 + p]
+                        g_a_h[p] = grad_alpha_h[y, x0 + p]
+                        total_h[p] = out_h[y, x0 + p, 0]
+                        g_c_h[p] = grad_out_h[y, x0 + p, 0]
+                    else:
+                        t_end_h[p] = _ONE
+                        g_a_h[p] = _ZERO
+                        total_h[p] = _ZERO
+                        g_c_h[p] = _ZERO
                 prefix[:, :] = _ZERO
                 py = _F(y) + _HALF
                 for k in range(start, row_last):
@@ -285,26 +413,84 @@ def _backward(
                     ca, cb, cc = ga[j], gb[j], gc[j]
                     mx, my = gx[j], gy[j]
                     dy = py - my
-                    if _row_misses(ca, cb, cc, dy, x_lo - mx, x_hi - mx, gq[j]):
+                    if pair:
+                        miss, miss_h = _row_misses_pair(ca, cb, cc, dy, x_lo - mx, x_hi - mx, gq[j], gqh[j])
+                    else:
+                        miss, miss_h = _row_misses(ca, cb, cc, dy, x_lo - mx, x_hi - mx, gq[j]), True
+                    if miss and miss_h:
                         continue
                     o = go[j]
                     n_hit = _ZERO
                     kf = _F(j)
-                    # Branch-free over the row's 16 pixels (as the forward), so LLVM vectorises it.
-                    for p in range(TILE_SIZE):
-                        dx = xs[p] - mx
-                        q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
-                        gauss = _exp_neg(-_HALF * q)
-                        raw = o * gauss
-                        gauss_px[p] = gauss
-                        alpha = min(_ALPHA_MAX, raw)
-                        hit = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO) & (kf < lastf[p]))
-                        hits[p] = hit
-                        weight[p] = hit * alpha * trans[p]
-                        inv_1m[p] = _ONE / (_ONE - alpha)
-                        # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
-                        d_alpha[p] = hit * (g_a[p] * t_end[p] * inv_1m[p])
-                        n_hit += hit
+                    if miss:  # only the second stream reaches this row: the footprint alone
+                        for p in range(TILE_SIZE):
+                            dx = xs[p] - mx
+                            q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+                            gauss_px[p] = _exp_neg(-_HALF * q)
+                            q_ok[p] = _F(q >= _ZERO)
+                    else:
+                        # Branch-free over the row's 16 pixels (as the forward), so LLVM vectorises it.
+                        for p in range(TILE_SIZE):
+                            dx = xs[p] - mx
+                            q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+                            gauss = _exp_neg(-_HALF * q)
+                            raw = o * gauss
+                            gauss_px[p] = gauss
+                            q_ok[p] = _F(q >= _ZERO)
+                            alpha = min(_ALPHA_MAX, raw)
+                            hit = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO) & (kf < lastf[p]))
+                            hits[p] = hit
+                            weight[p] = hit * alpha * trans[p]
+                            inv_1m[p] = _ONE / (_ONE - alpha)
+                            # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
+                            d_alpha[p] = hit * (g_a[p] * t_end[p] * inv_1m[p])
+                            n_hit += hit
+                    if not miss_h:
+                        # The second stream: same footprint (gauss_px), its own opacity, one channel,
+                        # every gradient its own (written to the _h arrays).
+                        oh = goh[j]
+                        val = gvh[j]
+                        n_hit_h = _ZERO
+                        for p in range(TILE_SIZE):
+                            alpha = min(_ALPHA_MAX, oh * gauss_px[p])
+                            hit = _F((alpha >= _ALPHA_MIN) & (kf < lastf_h[p])) * q_ok[p]
+                            hits_h[p] = hit
+                            weight_h[p] = hit * alpha * trans_h[p]
+                            inv_h[p] = _ONE / (_ONE - alpha)
+                            d_alpha_h[p] = hit * (g_a_h[p] * t_end_h[p] * inv_h[p])
+                            n_hit_h += hit
+                        if n_hit_h > _ZERO:
+                            s = _ZERO
+                            gm_x = _ZERO
+                            gm_y = _ZERO
+                            gca = _ZERO
+                            gcb = _ZERO
+                            gcc = _ZERO
+                            gop = _ZERO
+                            for p in range(TILE_SIZE):
+                                w = weight_h[p]
+                                s += w * g_c_h[p]
+                                prefix_h[p] += w * val
+                                d = val * trans_h[p] - (total_h[p] - prefix_h[p]) * inv_h[p]
+                                hit = hits_h[p]
+                                raw = oh * gauss_px[p]
+                                da = (d_alpha_h[p] + hit * (g_c_h[p] * d)) * _F(raw < _ALPHA_MAX)
+                                trans_h[p] = trans_h[p] * (_ONE - hit * min(_ALPHA_MAX, raw))
+                                dx = xs[p] - mx
+                                gop += da * gauss_px[p]
+                                g_q = -_HALF * raw * da
+                                gca += g_q * dx * dx
+                                gcb += g_q * _F(2.0) * dx * dy
+                                gcc += g_q * dy * dy
+                                gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
+                                gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
+                            g_values_h[k, 0] += s
+                            g_means2d_h[k, 0] += gm_x
+                            g_means2d_h[k, 1] += gm_y
+                            g_conics_h[k, 0] += gca
+                            g_conics_h[k, 1] += gcb
+                            g_conics_h[k, 2] += gcc
+                            g_opac_h[k] += gop
                     if n_hit == _ZERO:
                         continue
                     for ch in range(n_geo):
@@ -407,91 +593,111 @@ def _q_max(opacities: np.ndarray) -> np.ndarray:
     return np.maximum(q, -1.0).astype(np.float32)
 
 
+_NO_PAIR = (
+    np.zeros(0, np.float32),  # opacities
+    np.zeros(0, np.float32),  # q bounds
+    np.zeros(0, np.float32),  # values
+)
+
+
+def _pair_outputs(height: int, width: int, pair: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The second stream's image [H, W, 1], final transmittance and last contributors (1x1 stand-ins
+    without one)."""
+    h, w = (height, width) if pair else (1, 1)
+    return np.zeros((h, w, 1), np.float32), np.ones((h, w), np.float32), np.zeros((h, w), np.int32)
+
+
+def _as_np(t: Tensor) -> np.ndarray:
+    return t.detach().float().contiguous().numpy()
+
+
 class _RasterizeCPU(torch.autograd.Function):
+    """One stream (colour + features) or, with ``pair``, also a second one-channel stream that shares
+    the first one's footprints (means2d, conics: equal values) but has its own opacities and values and
+    passes its gradients to its own inputs (``means2d_h``, ``conics_h``, ...)."""
+
     @staticmethod
     def forward(
-        ctx, means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo
+        ctx,
+        means2d,
+        conics,
+        opacities,
+        colors,
+        background,
+        tile_offsets,
+        gaussian_ids,
+        width,
+        height,
+        n_geo,
+        means2d_h=None,
+        conics_h=None,
+        opacities_h=None,
+        values_h=None,
     ):
-        m = means2d.detach().float().contiguous().numpy()
-        cn = conics.detach().float().contiguous().numpy()
-        op = opacities.detach().float().contiguous().numpy()
-        col = colors.detach().float().contiguous().numpy()
-        bg = background.detach().float().contiguous().numpy()
+        pair = opacities_h is not None
+        m, cn, op, col, bg = (_as_np(t) for t in (means2d, conics, opacities, colors, background))
         offs = tile_offsets.contiguous().numpy()
         ids = gaussian_ids.contiguous().numpy()
         qm = _q_max(op)
+        stream_h = (_as_np(opacities_h.reshape(-1)), None, _as_np(values_h.reshape(-1))) if pair else _NO_PAIR
+        if pair:
+            stream_h = (stream_h[0], _q_max(stream_h[0]), stream_h[2])
         n_ch = col.shape[1]
         out = np.empty((height, width, n_ch), np.float32)
         t_final = np.empty((height, width), np.float32)
         n_contrib = np.empty((height, width), np.int32)
+        out_h, t_final_h, n_contrib_h = _pair_outputs(height, width, pair)
         tiles_x = math.ceil(width / TILE_SIZE)
         order, starts = _balance(offs, max(1, numba.get_num_threads()))
         _forward(
-            offs, order, starts, ids, m, cn, op, qm, col, bg, width, height, tiles_x, out, t_final, n_contrib
-        )
+            offs, order, starts, ids, m, cn, op, qm, col, bg, width, height, tiles_x, out, t_final, n_contrib,
+            *stream_h, _F(0.0), out_h, t_final_h, n_contrib_h,
+        )  # fmt: skip
         ctx.arrays = (offs, order, starts, ids, m, cn, op, qm, col, out, t_final, n_contrib)
+        ctx.pair = (stream_h, out_h, t_final_h, n_contrib_h)
         ctx.size = (width, height, tiles_x)
         ctx.n = means2d.shape[0]
         ctx.n_geo = n_geo
-        return torch.from_numpy(out), torch.from_numpy(1.0 - t_final)
+        image, alpha = torch.from_numpy(out), torch.from_numpy(1.0 - t_final)
+        if not pair:
+            return image, alpha
+        return image, alpha, torch.from_numpy(out_h), torch.from_numpy(1.0 - t_final_h)
 
     @staticmethod
-    def backward(ctx, grad_image, grad_alpha):
+    def backward(ctx, grad_image, grad_alpha, grad_image_h=None, grad_alpha_h=None):
         offs, order, starts, ids, m, cn, op, qm, col, out, t_final, n_contrib = ctx.arrays
+        stream_h, out_h, t_final_h, n_contrib_h = ctx.pair
+        pair = stream_h[0].shape[0] > 0
         width, height, tiles_x = ctx.size
         n_isect, n_ch = ids.shape[0], col.shape[1]
-        g_m = np.zeros((n_isect, 2), np.float32)
-        g_cn = np.zeros((n_isect, 3), np.float32)
-        g_op = np.zeros(n_isect, np.float32)
-        g_col = np.zeros((n_isect, n_ch), np.float32)
-        go = (
-            np.ascontiguousarray(grad_image.float().numpy()) if grad_image is not None else np.zeros_like(out)
-        )
-        ga = (
-            np.ascontiguousarray(grad_alpha.float().numpy())
-            if grad_alpha is not None
-            else np.zeros_like(t_final)
-        )
+
+        def upstream(grad, like):
+            return np.ascontiguousarray(grad.float().numpy()) if grad is not None else np.zeros_like(like)
+
+        go, ga = upstream(grad_image, out), upstream(grad_alpha, t_final)
+        go_h, ga_h = upstream(grad_image_h, out_h), upstream(grad_alpha_h, t_final_h)
+        k = n_isect if pair else 0
+        g_m, g_cn = np.zeros((n_isect, 2), np.float32), np.zeros((n_isect, 3), np.float32)
+        g_op, g_col = np.zeros(n_isect, np.float32), np.zeros((n_isect, n_ch), np.float32)
+        g_m_h, g_cn_h = np.zeros((k, 2), np.float32), np.zeros((k, 3), np.float32)
+        g_op_h, g_val_h = np.zeros(k, np.float32), np.zeros((k, 1), np.float32)
         _backward(
-            offs,
-            order,
-            starts,
-            ids,
-            m,
-            cn,
-            op,
-            qm,
-            col,
-            width,
-            height,
-            tiles_x,
-            out,
-            t_final,
-            n_contrib,
-            go,
-            ga,
-            g_m,
-            g_cn,
-            g_op,
-            g_col,
-            ctx.n_geo,
-        )
-        n = ctx.n
-        s_m, s_cn, s_op, s_col = (np.zeros((n, 2), np.float32), np.zeros((n, 3), np.float32),
-                                  np.zeros(n, np.float32), np.zeros((n, n_ch), np.float32))  # fmt: skip
-        _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col)
-        return (
-            torch.from_numpy(s_m),
-            torch.from_numpy(s_cn),
-            torch.from_numpy(s_op),
-            torch.from_numpy(s_col),
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
-        )
+            offs, order, starts, ids, m, cn, op, qm, col, width, height, tiles_x, out, t_final, n_contrib,
+            go, ga, g_m, g_cn, g_op, g_col, ctx.n_geo,
+            *stream_h, out_h, t_final_h, n_contrib_h, go_h, ga_h, g_m_h, g_cn_h, g_op_h, g_val_h,
+        )  # fmt: skip
+        grads = [*_summed(ids, ctx.n, g_m, g_cn, g_op, g_col), None, None, None, None, None, None]
+        if pair:
+            grads += _summed(ids, ctx.n, g_m_h, g_cn_h, g_op_h, g_val_h)
+        return tuple(grads)
+
+
+def _summed(ids, n, g_m, g_cn, g_op, g_col) -> list[Tensor]:
+    """Per-intersection gradients summed per Gaussian (deterministically, see _scatter_sum)."""
+    s_m, s_cn, s_op, s_col = (np.zeros((n, 2), np.float32), np.zeros((n, 3), np.float32),
+                              np.zeros(n, np.float32), np.zeros((n, g_col.shape[1]), np.float32))  # fmt: skip
+    _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col)
+    return [torch.from_numpy(a) for a in (s_m, s_cn, s_op, s_col)]
 
 
 def rasterize_cpu(
@@ -511,3 +717,38 @@ def rasterize_cpu(
     return _RasterizeCPU.apply(
         means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo
     )
+
+
+def rasterize_pair_cpu(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    means2d_h: Tensor,
+    conics_h: Tensor,
+    opacities_h: Tensor,
+    values_h: Tensor,
+    tile_offsets: Tensor,
+    gaussian_ids: Tensor,
+    width: int,
+    height: int,
+    background: Tensor,
+    geometry_channels: int | None = None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Two rasterizations of the same footprints in one walk over the tiles: :func:`rasterize_cpu` of
+    (means2d, conics, opacities, colors) and of (means2d_h, conics_h, opacities_h, values_h [N, 1]) on a
+    zero background. The footprints must be equal in value (a second projection of the same Gaussians,
+    for instance with rotations and scales detached); each stream's gradients go to its own inputs.
+    The lists must hold every Gaussian either stream reaches (binned with the larger opacity).
+
+    Returns (image [H, W, C], alpha [H, W], image_h [H, W, 1], alpha_h [H, W]).
+    """
+    if not (
+        torch.equal(means2d.detach(), means2d_h.detach()) and torch.equal(conics.detach(), conics_h.detach())
+    ):
+        raise ValueError("rasterize_pair_cpu: the two streams' footprints (means2d, conics) differ")
+    n_geo = colors.shape[1] if geometry_channels is None else int(geometry_channels)
+    return _RasterizeCPU.apply(
+        means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo,
+        means2d_h, conics_h, opacities_h, values_h,
+    )  # fmt: skip

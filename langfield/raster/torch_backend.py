@@ -106,7 +106,11 @@ def rasterize_torch(
         color, t_final = composite_tile(
             pixels, means2d[ids], conics[ids], opacities[ids], colors[ids], geometry_channels
         )
-        color = color + t_final[:, None] * background[None, :]
+        # The background's share is a blending weight too: detached for the channels past the geometry's.
+        behind = t_final[:, None].expand(-1, n_channels)
+        if geometry_channels is not None and geometry_channels < n_channels:
+            behind = torch.cat([behind[:, :geometry_channels], behind[:, geometry_channels:].detach()], dim=1)
+        color = color + behind * background[None, :]
         image[y0:y1, x0:x1] = color.reshape(y1 - y0, x1 - x0, n_channels)
         alpha[y0:y1, x0:x1] = (1.0 - t_final).reshape(y1 - y0, x1 - x0)
     if gaussian_ids.numel() == 0:
