@@ -93,6 +93,17 @@ def _row_misses_pair(a, b, c, dy, lo, hi, q1, q2):
 
 
 @njit(inline="always")
+def _add_footprint_grads(k, g_means2d, g_conics, g_opac, gm_x, gm_y, gca, gcb, gcc, gop):
+    """Intersection k's gradients of its centre, conic and opacity, added to a pass's arrays."""
+    g_means2d[k, 0] += gm_x
+    g_means2d[k, 1] += gm_y
+    g_conics[k, 0] += gca
+    g_conics[k, 1] += gcb
+    g_conics[k, 2] += gcc
+    g_opac[k] += gop
+
+
+@njit(inline="always")
 def _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors):
     """The m Gaussians listed from `start`, gathered once into contiguous arrays: a tile's 16 rows
     each walk them again. q bounds carry the row test's margin."""
@@ -485,12 +496,9 @@ def _backward(
                                 gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
                                 gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
                             g_values_h[k, 0] += s
-                            g_means2d_h[k, 0] += gm_x
-                            g_means2d_h[k, 1] += gm_y
-                            g_conics_h[k, 0] += gca
-                            g_conics_h[k, 1] += gcb
-                            g_conics_h[k, 2] += gcc
-                            g_opac_h[k] += gop
+                            _add_footprint_grads(
+                                k, g_means2d_h, g_conics_h, g_opac_h, gm_x, gm_y, gca, gcb, gcc, gop
+                            )
                     if n_hit == _ZERO:
                         continue
                     for ch in range(n_geo):
@@ -531,12 +539,7 @@ def _backward(
                         gcc += g_q * dy * dy
                         gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
                         gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
-                    g_means2d[k, 0] += gm_x
-                    g_means2d[k, 1] += gm_y
-                    g_conics[k, 0] += gca
-                    g_conics[k, 1] += gcb
-                    g_conics[k, 2] += gcc
-                    g_opac[k] += gop
+                    _add_footprint_grads(k, g_means2d, g_conics, g_opac, gm_x, gm_y, gca, gcb, gcc, gop)
 
 
 @njit(cache=True)
