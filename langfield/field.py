@@ -205,36 +205,17 @@ class LanguageField(nn.Module):
         background = torch.cat([behind, torch.zeros(features.shape[1] - 3)])
         # Channels past rgb + distance (the latents) pass no gradient to the geometry: L_LF trains only
         # the language features, in the same rasterization pass.
+        gaussians = (means, quats, scales, opac, features, camera)
+        options = {"background": background, "backend": backend, "geometry_channels": 4}
         depth_hard = None
         if hard_depth:
             # Eq. 7: every opacity replaced by mu, scales and rotations detached, so the hard depth's
             # gradient moves only the means. One pass with the main render on the cpu backend.
-            out, hard = rasterize_with_second_pass(
-                means,
-                quats,
-                scales,
-                opac,
-                features,
-                camera,
-                torch.full_like(opac, HARD_DEPTH_OPACITY) * (1.0 if keep is None else keep),
-                dist,
-                background=background,
-                backend=backend,
-                geometry_channels=4,
-            )
+            mu = torch.full_like(opac, HARD_DEPTH_OPACITY) * (1.0 if keep is None else keep)
+            out, hard = rasterize_with_second_pass(*gaussians, mu, dist, **options)
             depth_hard = hard[..., 0]
         else:
-            out = rasterize(
-                means,
-                quats,
-                scales,
-                opac,
-                features,
-                camera,
-                background=background,
-                backend=backend,
-                geometry_channels=4,
-            )
+            out = rasterize(*gaussians, **options)
         rendered_latents = None
         if latents is not None:
             h, w = out.image.shape[:2]

@@ -47,6 +47,14 @@ def resolve_backend(backend: Backend) -> str:
     return backend
 
 
+def _background(features: Tensor, background: Tensor | None) -> Tensor:
+    """[C] background of ``features``' dtype (zeros if None)."""
+    n_ch = features.shape[1]
+    if background is None:
+        return features.new_zeros(n_ch)
+    return torch.as_tensor(background, dtype=features.dtype).reshape(n_ch)
+
+
 def composite(
     projected: Projected,
     opacities: Tensor,
@@ -58,10 +66,7 @@ def composite(
     geometry_channels: int | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Composites already projected Gaussians: returns image [H, W, C] and alpha [H, W]."""
-    n_ch = features.shape[1]
-    if background is None:
-        background = features.new_zeros(n_ch)
-    background = torch.as_tensor(background, dtype=features.dtype).reshape(n_ch)
+    background = _background(features, background)
     opacities = opacities.reshape(-1)
     name = resolve_backend(backend)
     if name == "torch":
@@ -204,9 +209,7 @@ def rasterize_with_second_pass(
     detached = project_gaussians_cpu(means, quats.detach(), scales.detach(), *view)
     if projected.means2d.requires_grad:
         projected.means2d.retain_grad()
-    n_ch = features.shape[1]
-    background = features.new_zeros(n_ch) if background is None else background
-    background = torch.as_tensor(background, dtype=features.dtype).reshape(n_ch)
+    background = _background(features, background)
     opacities = opacities.reshape(-1)
     # Either pass's Gaussians: a list binned by the larger opacity holds every one that reaches a tile.
     reach = torch.maximum(opacities.detach(), second_opacities.detach())

@@ -62,22 +62,6 @@ def _exp_neg(x):
 
 
 @njit(inline="always", fastmath=True)
-def _row_misses(a, b, c, dy, lo, hi, q_bound):
-    """Whether q = a dx^2 + 2 b dx dy + c dy^2 exceeds q_bound for every dx in [lo, hi].
-
-    Along the row q is smallest at dx = -b dy / a (a > 0); compared as a dx = -b dy, without dividing.
-    """
-    t = -b * dy
-    if t < a * lo:
-        dx = lo
-    elif t > a * hi:
-        dx = hi
-    else:  # the minimum lies inside the segment: q_min = dy^2 det / a
-        return dy * dy * (a * c - b * b) > a * q_bound
-    return a * dx * dx + _F(2.0) * b * dx * dy + c * dy * dy > q_bound
-
-
-@njit(inline="always", fastmath=True)
 def _row_misses_pair(a, b, c, dy, lo, hi, q1, q2):
     """:func:`_row_misses` against two bounds at once (the row's smallest q is found once)."""
     t = -b * dy
@@ -90,6 +74,15 @@ def _row_misses_pair(a, b, c, dy, lo, hi, q1, q2):
         return v > a * q1, v > a * q2
     q = a * dx * dx + _F(2.0) * b * dx * dy + c * dy * dy
     return q > q1, q > q2
+
+
+@njit(inline="always", fastmath=True)
+def _row_misses(a, b, c, dy, lo, hi, q_bound):
+    """Whether q = a dx^2 + 2 b dx dy + c dy^2 exceeds q_bound for every dx in [lo, hi].
+
+    Along the row q is smallest at dx = -b dy / a (a > 0); compared as a dx = -b dy, without dividing.
+    """
+    return _row_misses_pair(a, b, c, dy, lo, hi, q_bound, q_bound)[0]
 
 
 @njit(inline="always")
@@ -642,9 +635,10 @@ class _RasterizeCPU(torch.autograd.Function):
         offs = tile_offsets.contiguous().numpy()
         ids = gaussian_ids.contiguous().numpy()
         qm = _q_max(op)
-        stream_h = (_as_np(opacities_h.reshape(-1)), None, _as_np(values_h.reshape(-1))) if pair else _NO_PAIR
+        stream_h = _NO_PAIR
         if pair:
-            stream_h = (stream_h[0], _q_max(stream_h[0]), stream_h[2])
+            op_h = _as_np(opacities_h.reshape(-1))
+            stream_h = (op_h, _q_max(op_h), _as_np(values_h.reshape(-1)))
         n_ch = col.shape[1]
         out = np.empty((height, width, n_ch), np.float32)
         t_final = np.empty((height, width), np.float32)
