@@ -50,6 +50,7 @@ __all__ = [
     "SYNONYMS",
     "distance_to_surfaces",
     "make_room",
+    "room_layout",
 ]
 
 LEVELS = ("subpart", "part", "whole")
@@ -79,7 +80,7 @@ _OWN_WEIGHT, _PARENT_WEIGHT = 0.6, 0.8
 _VIEW_NOISE, _SYNONYM_NOISE = 0.05, 0.2  # norms of the noise added to concept vectors
 
 # Independent random streams, so adding draws to one never changes another.
-_STREAM_LAYOUT, _STREAM_PRIOR, _STREAM_FEATURES, _STREAM_TEXT = 1, 2, 3, 4
+_STREAM_LAYOUT, _STREAM_PRIOR, _STREAM_FEATURES, _STREAM_TEXT, _STREAM_ARRANGE = 1, 2, 3, 4, 5
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,7 @@ def make_room(
     out_dir: str | Path,
     *,
     seed: int = 0,
+    layout: int = 0,
     width: int = 160,
     height: int = 120,
     n_train: int = 3,
@@ -108,6 +110,8 @@ def make_room(
         out_dir: folder to write; created if missing, existing files are overwritten.
         seed: seeds colours, textures, small furniture offsets, the depth prior and the features;
             the same seed gives byte-identical arrays.
+        layout: which furniture stands where (:func:`room_layout`): 0 is the built-in room; other
+            numbers draw the groups, their sizes and places, independently of ``seed``.
         width, height: image size in pixels of every view (60 degree horizontal field of view).
         n_train: training views on an arc of 70 degrees at 1.5 m height.
         n_test: novel test views between and slightly off that arc.
@@ -125,15 +129,19 @@ def make_room(
         raise ValueError(f"make_room: image size must be at least 8x8, got {width}x{height}")
     if n_train < 1 or n_test < 0:
         raise ValueError(f"make_room: need n_train >= 1 and n_test >= 0, got {n_train}, {n_test}")
+    if not (isinstance(layout, (int, np.integer)) and layout >= 0):
+        raise ValueError(f"make_room: layout must be a whole number >= 0, got {layout!r}")
     if not (scale > 0 and np.isfinite(scale)):
         raise ValueError(f"make_room: scale must be positive and finite, got {scale}")
     out = Path(out_dir)
     for sub in ("images", "depths", "language_features", "segmentations", "gt/depth", "gt/ids"):
         (out / sub).mkdir(parents=True, exist_ok=True)
 
-    prims = _room_primitives(np.random.default_rng([seed, _STREAM_LAYOUT]), scale)
+    prims = _room_primitives(np.random.default_rng([seed, _STREAM_LAYOUT]), scale, layout)
     phases = np.random.default_rng([seed, _STREAM_LAYOUT, 1]).uniform(0, 2 * np.pi, (len(prims), 4))
-    concepts = _concept_vectors(prims, seed)
+    # Every label of every group, whether or not this layout holds it: a query for an absent object
+    # is answered (by a low relevancy), not refused.
+    concepts = _concept_vectors(_room_primitives(np.random.default_rng(0), scale), seed)
     cameras = _room_cameras(width, height, n_train, n_test, scale)
     raycaster = o3d.t.geometry.RaycastingScene()
     for prim in prims:  # geometry id i is primitive i
@@ -153,14 +161,14 @@ def make_room(
         np.save(out / "gt" / "ids" / f"{cam.name}.npy", ids)
         _write_segmentations(out / "segmentations" / cam.name, ids, prims)
 
-    _write_transforms(out / "transforms.json", cameras, n_train, prims, seed, scale)
+    _write_transforms(out / "transforms.json", cameras, n_train, prims, seed, scale, layout)
     _write_text_embeddings(out / "text_embeddings.npz", concepts, seed)
     _write_ground_truth_mesh(out / "gt", prims)
     return out
 
 
 def distance_to_surfaces(
-    scene_dir: str | Path, points: np.ndarray, *, label: str | None = None
+    scene_dir: str | Path, points: np.ndarray, *, label: str | None = None, level: str | None = None
 ) -> np.ndarray:
     """Unsigned distance from each point to the nearest ground-truth surface of a synthetic scene.
 
@@ -169,6 +177,7 @@ def distance_to_surfaces(
         points: [N, 3] world positions.
         label: if given, only the primitives carrying this label at any level (e.g. "sofa",
             "table legs", "lamp shade") count as surfaces.
+        level: with ``label``, only that level's label counts (one of :data:`LEVELS`).
 
     Returns:
         [N] float32 distances, in scene units.
@@ -187,7 +196,13 @@ def distance_to_surfaces(
     mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
     if label is not None:
         records = json.loads((gt / "primitives.json").read_text())
-        keep = [np.arange(*r["triangles"]) for r in records if label in r["labels"].values()]
+        if level is not None and level not in LEVELS:
+            raise ValueError(f"distance_to_surfaces: level must be one of {LEVELS}, got {level!r}")
+        keep = [
+            np.arange(*r["triangles"])
+            for r in records
+            if (r["labels"][level] == label if level else label in r["labels"].values())
+        ]
         if not keep:
             raise ValueError(f"distance_to_surfaces: no primitive of {gt / 'primitives.json'} is {label!r}")
         mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[np.concatenate(keep)])
@@ -215,44 +230,122 @@ def _cylinder(radius: float, height: float, center: tuple[float, float, float]) 
     return o3d.geometry.TriangleMesh.create_cylinder(radius, height, resolution=24).translate(center)
 
 
-def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]:
-    """Every primitive of the room, in world coordinates times `scale`.
+# The furniture groups: each one's home (the floor point it stands on in the built-in room, layout 0) and
+# its floor footprint there (x, y lows and highs), which a layout moves, scales about the home and keeps
+# from overlapping. "wall": stands against the back wall (y = 2) in every layout.
+_GROUPS = {
+    "sofa": {"home": (-0.3, 1.5), "footprint": ((-1.25, 1.1), (0.65, 1.9)), "wall": True},
+    "table": {"home": (-0.3, 0.4), "footprint": ((-0.8, 0.125), (0.2, 0.675)), "wall": False},
+    "lamp": {"home": (1.2, 1.6), "footprint": ((1.05, 1.45), (1.35, 1.75)), "wall": False},
+    "chair": {"home": (1.1, 0.35), "footprint": ((0.875, 0.125), (1.325, 0.575)), "wall": False},
+    "shelf": {"home": (-1.65, 1.8), "footprint": ((-1.95, 1.65), (-1.35, 1.95)), "wall": True},
+}
+# Where a layout may put furniture: the floor the training cameras see, inside the walls.
+_FLOOR_LO, _FLOOR_HI = (-1.95, 0.0), (1.95, 1.97)
+_LAYOUT_SIZES = (0.8, 1.25)  # each group's size factor in a random layout
+_LAYOUT_TRIES = 200  # placements tried per group before it is left out
+
+
+@dataclass(frozen=True)
+class _Placement:
+    """A furniture group scaled by ``size`` about its home and moved by (dx, dy) from it."""
+
+    kind: str
+    size: float = 1.0
+    dx: float = 0.0
+    dy: float = 0.0
+
+    def footprint(self) -> tuple[np.ndarray, np.ndarray]:
+        home = np.asarray(_GROUPS[self.kind]["home"])
+        lo, hi = (np.asarray(v) for v in _GROUPS[self.kind]["footprint"])
+        move = home + (self.dx, self.dy)
+        return move + self.size * (lo - home), move + self.size * (hi - home)
+
+
+def room_layout(layout: int) -> list[_Placement]:
+    """The furniture of layout ``layout``: 0 is the built-in room (every group at home); any other
+    number draws which groups stand in the room (at least three; a second chair sometimes), their
+    sizes and their places on the floor, without overlaps, from its own random stream."""
+    if layout == 0:
+        return [_Placement(kind) for kind in _GROUPS]
+    rng = np.random.default_rng([layout, _STREAM_ARRANGE])
+    kinds = [k for k in _GROUPS if rng.random() < 0.75]
+    while len(kinds) < 3:
+        kinds = sorted({*kinds, str(rng.choice(list(_GROUPS)))}, key=list(_GROUPS).index)
+    if "chair" in kinds and rng.random() < 0.4:
+        kinds.append("chair")
+    placed: list[_Placement] = []
+    for kind in kinds:
+        for _ in range(_LAYOUT_TRIES):
+            size = float(rng.uniform(*_LAYOUT_SIZES))
+            lo, hi = _Placement(kind, size).footprint()
+            dx = float(rng.uniform(_FLOOR_LO[0] - lo[0], _FLOOR_HI[0] - hi[0]))
+            if _GROUPS[kind]["wall"]:  # its back to the back wall, a few centimetres off
+                dy = float(_FLOOR_HI[1] - hi[1] - rng.uniform(0.0, 0.05))
+            else:
+                dy = float(rng.uniform(_FLOOR_LO[1] - lo[1], _FLOOR_HI[1] - hi[1]))
+            candidate = _Placement(kind, size, dx, dy)
+            if all(not _overlap(candidate, other) for other in placed):
+                placed.append(candidate)
+                break
+    return placed
+
+
+def _overlap(a: _Placement, b: _Placement, gap: float = 0.05) -> bool:
+    (alo, ahi), (blo, bhi) = a.footprint(), b.footprint()
+    return bool(np.all(alo < bhi + gap) and np.all(blo < ahi + gap))
+
+
+Color = tuple[float, float, float]
+
+
+def _room_primitives(rng: np.random.Generator, scale: float, layout: int = 0) -> list[_Primitive]:
+    """Every primitive of the room (furniture of :func:`room_layout`), in world coordinates x `scale`.
 
     Each furniture group is shifted by a few centimetres and each colour jittered by a few percent,
     both from `rng`, so that seeds give different (but equally valid) rooms.
     """
     prims: list[_Primitive] = []
 
-    Color = tuple[float, float, float]
+    def adder(shift: tuple[float, float], place: _Placement | None = None):
+        def add(
+            mesh: o3d.geometry.TriangleMesh, subpart: str, part: str, whole: str, color: Color, texture: str
+        ) -> None:
+            dx = dy = 0.0
+            if place is not None:
+                if place.size != 1.0:
+                    home = _GROUPS[place.kind]["home"]
+                    mesh.scale(place.size, center=(home[0], home[1], 0.0))
+                dx, dy = place.dx, place.dy
+            mesh.translate((shift[0] + dx, shift[1] + dy, 0.0))
+            jitter = np.clip(np.asarray(color) * (1 + rng.uniform(-0.06, 0.06, 3)), 0, 1)
+            mesh.scale(scale, center=(0, 0, 0))
+            prims.append(_Primitive(mesh, (subpart, part, whole), tuple(float(c) for c in jitter), texture))
 
-    def add(
-        mesh: o3d.geometry.TriangleMesh,
-        subpart: str,
-        part: str,
-        whole: str,
-        color: Color,
-        texture: str,
-        shift: tuple[float, float] = (0.0, 0.0),
-    ) -> None:
-        mesh.translate((shift[0], shift[1], 0.0))
-        jitter = np.clip(np.asarray(color) * (1 + rng.uniform(-0.06, 0.06, 3)), 0, 1)
-        mesh.scale(scale, center=(0, 0, 0))
-        prims.append(_Primitive(mesh, (subpart, part, whole), tuple(float(c) for c in jitter), texture))
+        return add
 
     def shift() -> tuple[float, float]:
         return tuple(rng.uniform(-0.05, 0.05, 2))
 
     # Room shell: the floor's top face is z = 0; the front (camera) and right sides are open.
-    add(_box((4.0, 4.0, 0.05), (0.0, 0.0, -0.025)), "floor", "floor", "floor", (0.74, 0.6, 0.44), "checker")
-    add(_box((4.0, 0.05, 2.5), (0.0, 2.025, 1.25)), "wall", "wall", "wall", (0.86, 0.84, 0.78), "plaster")
-    add(_box((0.05, 4.05, 2.5), (-2.025, 0.025, 1.25)), "wall", "wall", "wall", (0.8, 0.83, 0.86), "plaster")
-    add(
-        _box((2.0, 1.4, 0.01), (-0.3, 0.4, 0.005)), "rug", "rug", "rug", (0.6, 0.26, 0.22), "stripes", shift()
+    fixed = adder((0.0, 0.0))
+    fixed(_box((4.0, 4.0, 0.05), (0.0, 0.0, -0.025)), "floor", "floor", "floor", (0.74, 0.6, 0.44), "checker")
+    fixed(_box((4.0, 0.05, 2.5), (0.0, 2.025, 1.25)), "wall", "wall", "wall", (0.86, 0.84, 0.78), "plaster")
+    fixed(
+        _box((0.05, 4.05, 2.5), (-2.025, 0.025, 1.25)), "wall", "wall", "wall", (0.8, 0.83, 0.86), "plaster"
     )
+    adder(shift())(
+        _box((2.0, 1.4, 0.01), (-0.3, 0.4, 0.005)), "rug", "rug", "rug", (0.6, 0.26, 0.22), "stripes"
+    )
+    for place in room_layout(layout):
+        _BUILDERS[place.kind](adder(shift(), place))
+    return prims
 
-    s = shift()  # sofa against the back wall, facing -y
+
+def _sofa(add) -> None:
+    """Against the back wall, facing -y."""
     fabric = (0.26, 0.36, 0.58)
-    add(_box((1.6, 0.8, 0.35), (-0.3, 1.5, 0.175)), "sofa base", "sofa seat", "sofa", fabric, "fabric", s)
+    add(_box((1.6, 0.8, 0.35), (-0.3, 1.5, 0.175)), "sofa base", "sofa seat", "sofa", fabric, "fabric")
     for x in (-0.7, 0.1):
         add(
             _box((0.78, 0.6, 0.12), (x, 1.4, 0.41)),
@@ -261,17 +354,8 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
             "sofa",
             (0.36, 0.48, 0.72),
             "fabric",
-            s,
         )
-    add(
-        _box((1.6, 0.2, 0.5), (-0.3, 1.8, 0.6)),
-        "sofa back",
-        "sofa back",
-        "sofa",
-        (0.3, 0.4, 0.62),
-        "fabric",
-        s,
-    )
+    add(_box((1.6, 0.2, 0.5), (-0.3, 1.8, 0.6)), "sofa back", "sofa back", "sofa", (0.3, 0.4, 0.62), "fabric")
     for x in (-1.175, 0.575):
         add(
             _box((0.15, 0.8, 0.6), (x, 1.5, 0.3)),
@@ -280,10 +364,11 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
             "sofa",
             (0.22, 0.32, 0.52),
             "fabric",
-            s,
         )
 
-    s = shift()  # coffee table in front of the sofa, with a mug and a book on it
+
+def _table(add) -> None:
+    """A coffee table with a mug and a book on it."""
     add(
         _box((1.0, 0.55, 0.04), (-0.3, 0.4, 0.44)),
         "table top",
@@ -291,22 +376,14 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
         "table",
         (0.56, 0.36, 0.2),
         "wood",
-        s,
     )
     for dx in (-0.45, 0.45):
         for dy in (-0.22, 0.22):
-            add(
-                _cylinder(0.025, 0.42, (-0.3 + dx, 0.4 + dy, 0.21)),
-                "table leg",
-                "table legs",
-                "table",
-                (0.3, 0.2, 0.12),
-                "plain",
-                s,
-            )
+            leg = _cylinder(0.025, 0.42, (-0.3 + dx, 0.4 + dy, 0.21))
+            add(leg, "table leg", "table legs", "table", (0.3, 0.2, 0.12), "plain")
     red = (0.82, 0.16, 0.14)
-    add(_cylinder(0.045, 0.1, (-0.05, 0.35, 0.51)), "mug body", "mug", "mug", red, "plain", s)
-    add(_box((0.03, 0.015, 0.06), (0.01, 0.35, 0.51)), "mug handle", "mug", "mug", red, "plain", s)
+    add(_cylinder(0.045, 0.1, (-0.05, 0.35, 0.51)), "mug body", "mug", "mug", red, "plain")
+    add(_box((0.03, 0.015, 0.06), (0.01, 0.35, 0.51)), "mug handle", "mug", "mug", red, "plain")
     add(
         _box((0.22, 0.16, 0.04), (-0.58, 0.45, 0.48), yaw_deg=15),
         "book",
@@ -314,13 +391,14 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
         "book",
         (0.16, 0.46, 0.26),
         "plain",
-        s,
     )
 
-    s = shift()  # floor lamp right of the sofa
+
+def _lamp(add) -> None:
+    """A floor lamp."""
     metal = (0.22, 0.22, 0.24)
-    add(_cylinder(0.15, 0.04, (1.2, 1.6, 0.02)), "lamp base", "lamp stand", "lamp", metal, "plain", s)
-    add(_cylinder(0.02, 1.3, (1.2, 1.6, 0.69)), "lamp pole", "lamp stand", "lamp", metal, "plain", s)
+    add(_cylinder(0.15, 0.04, (1.2, 1.6, 0.02)), "lamp base", "lamp stand", "lamp", metal, "plain")
+    add(_cylinder(0.02, 1.3, (1.2, 1.6, 0.69)), "lamp pole", "lamp stand", "lamp", metal, "plain")
     add(
         _cylinder(0.2, 0.28, (1.2, 1.6, 1.45)),
         "lamp shade",
@@ -328,40 +406,30 @@ def _room_primitives(rng: np.random.Generator, scale: float) -> list[_Primitive]
         "lamp",
         (0.96, 0.88, 0.64),
         "fabric",
-        s,
     )
 
-    s = shift()  # chair right of the table, facing it (-x)
+
+def _chair(add) -> None:
+    """A chair facing -x."""
     wood = (0.66, 0.46, 0.26)
-    add(_box((0.45, 0.45, 0.05), (1.1, 0.35, 0.45)), "chair seat", "chair seat", "chair", wood, "wood", s)
-    add(_box((0.05, 0.45, 0.45), (1.3, 0.35, 0.7)), "chair back", "chair back", "chair", wood, "wood", s)
+    add(_box((0.45, 0.45, 0.05), (1.1, 0.35, 0.45)), "chair seat", "chair seat", "chair", wood, "wood")
+    add(_box((0.05, 0.45, 0.45), (1.3, 0.35, 0.7)), "chair back", "chair back", "chair", wood, "wood")
     for dx in (-0.19, 0.19):
         for dy in (-0.19, 0.19):
-            add(
-                _cylinder(0.02, 0.425, (1.1 + dx, 0.35 + dy, 0.2125)),
-                "chair leg",
-                "chair legs",
-                "chair",
-                (0.4, 0.27, 0.15),
-                "plain",
-                s,
-            )
+            leg = _cylinder(0.02, 0.425, (1.1 + dx, 0.35 + dy, 0.2125))
+            add(leg, "chair leg", "chair legs", "chair", (0.4, 0.27, 0.15), "plain")
 
-    s = shift()  # shelf in the back-left corner
+
+def _shelf(add) -> None:
+    """An open shelf: two sides and four boards."""
     shelf = (0.52, 0.34, 0.2)
     for x in (-1.935, -1.365):
-        add(_box((0.03, 0.3, 1.4), (x, 1.8, 0.7)), "shelf side", "shelf frame", "shelf", shelf, "wood", s)
+        add(_box((0.03, 0.3, 1.4), (x, 1.8, 0.7)), "shelf side", "shelf frame", "shelf", shelf, "wood")
     for z in (0.06, 0.5, 0.94, 1.39):
-        add(
-            _box((0.54, 0.3, 0.025), (-1.65, 1.8, z)),
-            "shelf board",
-            "shelf boards",
-            "shelf",
-            shelf,
-            "wood",
-            s,
-        )
-    return prims
+        add(_box((0.54, 0.3, 0.025), (-1.65, 1.8, z)), "shelf board", "shelf boards", "shelf", shelf, "wood")
+
+
+_BUILDERS = {"sofa": _sofa, "table": _table, "lamp": _lamp, "chair": _chair, "shelf": _shelf}
 
 
 def _room_cameras(width: int, height: int, n_train: int, n_test: int, scale: float) -> list[Camera]:
@@ -580,7 +648,13 @@ def _write_segmentations(folder: Path, ids: np.ndarray, prims: list[_Primitive])
 
 
 def _write_transforms(
-    path: Path, cameras: list[Camera], n_train: int, prims: list[_Primitive], seed: int, scale: float
+    path: Path,
+    cameras: list[Camera],
+    n_train: int,
+    prims: list[_Primitive],
+    seed: int,
+    scale: float,
+    layout: int = 0,
 ) -> None:
     """transforms.json: shared PINHOLE intrinsics, disparity priors, the room's aabb and every frame."""
     cam = cameras[0]
@@ -604,7 +678,12 @@ def _write_transforms(
         "cy": cam.cy,
         "depth_kind": "disparity",
         "aabb": [lo.tolist(), hi.tolist()],
-        "generator": {"name": "langfield.synthetic.make_room", "seed": seed, "scale": scale},
+        "generator": {
+            "name": "langfield.synthetic.make_room",
+            "seed": seed,
+            "layout": layout,
+            "scale": scale,
+        },
         "frames": frames,
     }
     path.write_text(json.dumps(meta, indent=2))

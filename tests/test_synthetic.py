@@ -19,6 +19,7 @@ from langfield.synthetic import (
     SYNONYMS,
     distance_to_surfaces,
     make_room,
+    room_layout,
 )
 
 W, H = 64, 48
@@ -189,6 +190,13 @@ def test_distance_to_surfaces(scene: Path) -> None:
     assert distance_to_surfaces(scene, np.array([top]), label="lamp")[0] > 0.5
     with pytest.raises(ValueError, match=r"\[N, 3\]"):
         distance_to_surfaces(scene, np.zeros(3))
+    # "mug" names the mug at the part and whole levels; "table top" is a subpart, not a whole object.
+    mug = next(p for p in _primitives(scene) if p["labels"]["subpart"] == "mug body")["center"]
+    assert distance_to_surfaces(scene, np.array([mug]), label="mug", level="whole")[0] < 0.05
+    with pytest.raises(ValueError, match="no primitive"):
+        distance_to_surfaces(scene, np.array([top]), label="table top", level="whole")
+    with pytest.raises(ValueError, match="level must be one of"):
+        distance_to_surfaces(scene, np.array([top]), label="table", level="room")
 
 
 def test_text_embeddings_hold_labels_synonyms_and_canonical_phrases(scene: Path) -> None:
@@ -212,6 +220,43 @@ def test_scale_scales_geometry_and_cameras(scene: Path, tmp_path: Path) -> None:
     np.testing.assert_allclose(big_depth, 2.0 * depth, rtol=1e-4)
 
 
+def test_layout_0_is_the_built_in_room_at_home() -> None:
+    assert [(p.kind, p.size, p.dx, p.dy) for p in room_layout(0)] == [
+        (kind, 1.0, 0.0, 0.0) for kind in ("sofa", "table", "lamp", "chair", "shelf")
+    ]
+
+
+@pytest.mark.parametrize("layout", range(1, 13))
+def test_random_layouts_place_three_or_more_groups_on_the_floor_apart(layout: int) -> None:
+    placed = room_layout(layout)
+    assert placed == room_layout(layout)  # a layout number is one room
+    assert len(placed) >= 3 and {p.kind for p in placed} <= {"sofa", "table", "lamp", "chair", "shelf"}
+    assert all(0.8 <= p.size <= 1.25 for p in placed)
+    for i, a in enumerate(placed):
+        lo, hi = a.footprint()
+        assert lo[0] >= -1.95 - 1e-9 and hi[0] <= 1.95 + 1e-9 and lo[1] >= -1e-9 and hi[1] <= 1.97 + 1e-9
+        for b in placed[i + 1 :]:
+            blo, bhi = b.footprint()
+            assert np.any(hi < blo) or np.any(bhi < lo), (a, b)  # footprints apart
+    assert len({tuple((p.kind, p.dx) for p in room_layout(k)) for k in range(1, 13)}) == 12
+
+
+def test_a_layout_moves_the_furniture_and_keeps_every_phrase(scene: Path, tmp_path: Path) -> None:
+    default = make_room(tmp_path / "default", seed=0, width=W, height=H, n_test=0, layout=0)
+    assert _arrays(default, "train_000")["image"].tobytes() == _arrays(scene, "train_000")["image"].tobytes()
+    moved = make_room(tmp_path / "moved", seed=0, width=W, height=H, n_test=0, layout=2)
+    assert not np.array_equal(_arrays(scene, "train_000")["image"], _arrays(moved, "train_000")["image"])
+    kinds = {p.kind for p in room_layout(2)}
+    wholes = {p["labels"]["whole"] for p in _primitives(moved)}
+    assert wholes == kinds | {"floor", "wall", "rug", *(("mug", "book") if "table" in kinds else ())}
+    assert {"sofa", "lamp", "shelf", "mug", "couch"} <= set(np.load(moved / "text_embeddings.npz").files)
+    meta = json.loads((moved / "transforms.json").read_text())
+    assert meta["generator"]["layout"] == 2
+    for p in _primitives(moved):  # every piece of furniture stands on or above the floor, inside the walls
+        lo, hi = np.asarray(p["aabb"])
+        assert lo[2] >= -0.06 and lo[0] >= -2.06 and hi[1] <= 2.06, p["labels"]
+
+
 def test_bad_arguments_are_rejected(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="image size"):
         make_room(tmp_path, width=4, height=48)
@@ -219,3 +264,5 @@ def test_bad_arguments_are_rejected(tmp_path: Path) -> None:
         make_room(tmp_path, n_train=0)
     with pytest.raises(ValueError, match="scale"):
         make_room(tmp_path, scale=0.0)
+    with pytest.raises(ValueError, match="layout"):
+        make_room(tmp_path, layout=-1)
