@@ -188,7 +188,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     check_writable_file(json_path.with_suffix(".md"), "Markdown summary")
     pictures = check_writable_folder(json_path.parent / (json_path.stem + "_renders"), "pictures")
     field, scene = _load_field_and_scene(args.out, args.scene)
-    report = evaluate(field, scene, split=args.split, save_dir=pictures)
+    if args.oracle:
+        from langfield.evaluate import check_oracle
+
+        check_oracle(field, scene, scene.names(args.split))
+    report = evaluate(field, scene, split=args.split, save_dir=pictures, oracle=args.oracle)
     md = write_report(report, json_path, pictures)
     psnr_txt = (
         f"PSNR {report['PSNR']:.2f} dB, SSIM {report['SSIM']:.3f}"
@@ -200,6 +204,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     query_txt = (
         f", mIoU {report['mIoU']:.3f}, mAcc {report['mAcc']:.3f}" if report.get("mIoU") is not None else ""
     )
+    oracle = report.get("oracle")
+    if oracle and oracle["mIoU"] is not None:
+        ratio = "" if oracle["ratio"] is None else f", {oracle['ratio']:.2f} of it"
+        query_txt += f" (oracle on the true features: mIoU {oracle['mIoU']:.3f}{ratio})"
+    selection = report.get("selection_3d")
+    if selection and selection["precision"] is not None:
+        query_txt += f", 3D selection precision {selection['precision']:.3f} recall {selection['recall']:.3f}"
     print(
         f"{len(report['views'])} {args.split} views: {psnr_txt}{query_txt}{_cosine_text(report)}; "
         f"{report['num_gaussians']} Gaussians, "
@@ -258,9 +269,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from langfield.synthetic import make_room
     from langfield.trainer import TrainConfig, summary_line, train, training_length
 
+    if args.layout < 0:
+        raise ValueError(f"--layout: a whole number >= 0, got {args.layout}")
     out = Path(args.out)
     t0 = time.perf_counter()
-    scene_dir = make_room(out / "scene", seed=args.seed, width=args.width, height=args.height)
+    scene_dir = make_room(
+        out / "scene", seed=args.seed, layout=args.layout, width=args.width, height=args.height
+    )
     print(f"[1/5] built-in scene written to {scene_dir}")
     scene = load_scene(scene_dir)
     length = training_length(args.iterations, len(scene.names("train")))["iterations"]
@@ -504,6 +519,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--split", choices=["test", "train"], default="test", help="views to score (default: the test views)"
     )
+    p.add_argument(
+        "--oracle",
+        action="store_true",
+        help="also score the queries on each view's own mask features (its feature cache): the query "
+        "pipeline's ceiling, beside the field's mIoU and their ratio",
+    )
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("bench", help="time the backends and trace quality against training time")
@@ -558,6 +579,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--iterations", type=int, default=None, help="training iterations (default: sized by the scene)"
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the scene and the training (default 0)")
+    p.add_argument(
+        "--layout",
+        type=int,
+        default=0,
+        help="the room's furniture: 0 the built-in room, other numbers random arrangements (default 0)",
+    )
     p.add_argument("--width", type=int, default=160, help="image width of the built-in scene (default 160)")
     p.add_argument("--height", type=int, default=120, help="image height of the built-in scene (default 120)")
     p.set_defaults(func=cmd_demo)

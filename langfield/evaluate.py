@@ -25,6 +25,7 @@ from encoders.protocols import LEVELS, TextEncoder
 from encoders.text_table import UnknownPhraseError
 from langfield.atomic import atomic_path, check_writable_file
 from langfield.field import LanguageField
+from langfield.geometry_eval import selection_scores
 from langfield.query import fill_empty, text_encoder_for
 from langfield.scene import Scene
 from querying.evaluation import query_record, summarize_queries
@@ -42,6 +43,7 @@ def evaluate(
     split: str = "test",
     save_dir: str | Path | None = None,
     text_encoder: TextEncoder | str | Path | None = None,
+    oracle: bool = False,
 ) -> dict:
     """Renders every view of ``split`` and scores it against the scene's images and text labels.
 
@@ -54,12 +56,17 @@ def evaluate(
             truth outlined).
         text_encoder: embeds the labels' phrases (see :func:`langfield.query.text_encoder_for`); default
             the field's own.
+        oracle: also score the same queries on each view's own mask features (its feature cache), as
+            if the field rendered them perfectly: the ceiling of the query pipeline (report key
+            ``oracle``: its mIoU and mAcc, and the field's mIoU as a fraction of the oracle's).
 
     Returns:
-        The FORMAT.md report as a dict; ``views[i]["queries"]`` is ``{phrase: {"iou", "hit"}}``.
+        The FORMAT.md report as a dict; ``views[i]["queries"]`` is ``{phrase: {"iou", "hit"}}``, and
+        with ``oracle`` ``views[i]["oracle_queries"]`` the same on the true features.
 
     Raises:
-        ValueError: a labelled phrase the text encoder does not know (the message names it).
+        ValueError: a labelled phrase the text encoder does not know (the message names it); with
+            ``oracle``, a field without language or a labelled view without a feature cache.
     """
     views: list[dict[str, Any]] = []
     cosines: list[list[float]] = []
@@ -67,8 +74,11 @@ def evaluate(
     sheet_tiles: list[np.ndarray] = []
     sheet_labels: list[str] = []
     names = scene.names(split)
+    if oracle:
+        check_oracle(field, scene, names)
     labels = {name: scene.segmentations(name) for name in names} if field.decoder is not None else {}
     embeddings = _label_embeddings(field, labels, text_encoder, scene)
+    oracle_records: list[dict[str, float | bool]] = []
     with torch.no_grad():
         for name in names:
             out = field.render(scene.camera(name))
@@ -78,7 +88,7 @@ def evaluate(
             decoded = field.decode(out.latents) if has_cache or scored else None  # [3, H, W, 512]
             if has_cache:
                 cosines.append(feature_cosine(decoded, scene, name))
-            queries = {}
+            queries, extra = {}, {}
             if scored:
                 phrases, phrase_embeddings, canonical_embeddings = embeddings
                 maps = relevancy(decoded, phrase_embeddings, canonical_embeddings)  # [P, 3, H, W]
@@ -86,11 +96,18 @@ def evaluate(
                 queries = score_queries(maps, phrases, labels[name])
                 if save is not None:
                     write_query_sheet(save, name, out.rgb, maps, phrases, labels[name], queries)
+                if oracle:
+                    features = true_features(scene, name)
+                    true_maps = relevancy(features, phrase_embeddings, canonical_embeddings)
+                    # A perfect field covers exactly the pixels that some mask covers.
+                    true_maps = fill_empty(true_maps, (features != 0).any(-1).any(0).float())
+                    extra["oracle_queries"] = score_queries(true_maps, phrases, labels[name])
+                    oracle_records += extra["oracle_queries"].values()
             record = {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target)}
             object_mask = scene.object_mask(name)
             if object_mask is not None:
                 record.update(masked_scores(out.rgb, target, torch.from_numpy(object_mask)))
-            views.append({**record, "queries": queries})
+            views.append({**record, "queries": queries, **extra})
             if save is not None:
                 write_render_pngs(save, name, out.rgb.numpy(), out.depth.numpy(), out.alpha.numpy())
                 sheet_tiles += _view_tiles(out, target)
@@ -118,8 +135,54 @@ def evaluate(
         "field_bytes": field.field_bytes(),
         "backend": m.get("backend"),
         "feature_cosine": _level_means(cosines),
+        "oracle": _oracle_summary(summary, oracle_records) if oracle else None,
+        "selection_3d": selection_scores(field, scene),
         "views": views,
     }
+
+
+def check_oracle(field: LanguageField, scene: Scene, names: list[str]) -> None:
+    """Refuses an oracle evaluation before any work: it needs the field's language and, for every
+    labelled view of ``names``, the view's feature cache."""
+    if field.decoder is None:
+        raise ValueError("--oracle: the field has no language (trained without feature caches)")
+    for name in names:
+        if scene.segmentations(name) and scene.feature_paths(name) is None:
+            raise ValueError(
+                f"{scene.root}/language_features/{name}_f.npy: missing; --oracle scores each labelled "
+                f"view on its own mask features"
+            )
+
+
+def true_features(scene: Scene, name: str) -> torch.Tensor:
+    """[3, H, W, 512] view ``name``'s mask features per level (subpart, part, whole) from its feature
+    cache: each pixel carries its mask's feature; zero where the level has no mask (as a LangSplat
+    feature cache leaves such pixels). Pixels without a mask at any level count as empty in the oracle
+    (:func:`langfield.query.fill_empty`), as the pixels a field leaves empty do."""
+    cache = _feature_cache(scene, name)
+    features = torch.from_numpy(cache.features).float()
+    out = torch.zeros(len(LEVELS), *cache.segments[0].shape, features.shape[-1])
+    for level in range(len(LEVELS)):
+        seg = torch.from_numpy(cache.segments[level].astype(np.int64))
+        valid = seg >= 0
+        out[level][valid] = features[seg[valid]]
+    return out
+
+
+def _feature_cache(scene: Scene, name: str):
+    cam = scene.camera(name)
+    return read_feature_cache(*scene.feature_paths(name), expected_hw=(cam.height, cam.width))
+
+
+def _oracle_summary(
+    field_summary: dict[str, float | None], records: list[dict[str, float | bool]]
+) -> dict[str, float | None]:
+    """The oracle's mIoU and mAcc and the field's mIoU as a fraction of the oracle's."""
+    summary = summarize_queries(records)
+    ratio = None
+    if field_summary["mIoU"] is not None and summary["mIoU"]:
+        ratio = field_summary["mIoU"] / summary["mIoU"]
+    return {**summary, "ratio": ratio}
 
 
 def masked_scores(rgb: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
@@ -223,8 +286,7 @@ def feature_cosine(decoded: torch.Tensor, scene: Scene, name: str) -> list[float
         Three numbers (subpart, part, whole), averaged over the pixels that have a mask at that level;
         NaN for a level without masks.
     """
-    cam = scene.camera(name)
-    cache = read_feature_cache(*scene.feature_paths(name), expected_hw=(cam.height, cam.width))
+    cache = _feature_cache(scene, name)
     features = torch.from_numpy(cache.features)
     result = []
     for level in range(len(LEVELS)):
@@ -307,6 +369,31 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
         )
         + " |",
         "",
+    ]
+    oracle = report.get("oracle")
+    if oracle:
+        lines += [
+            "Oracle (the same queries on each view's own mask features, the query pipeline's ceiling): "
+            f"mIoU {fmt(oracle['mIoU'])}, mAcc {fmt(oracle['mAcc'])}; the field reaches "
+            f"{fmt(oracle['ratio'], 2)} of its mIoU.",
+            "",
+        ]
+    selection = report.get("selection_3d")
+    if selection and selection["precision"] is not None:
+        lines += [
+            f"3D selection (`field.query(o).gaussians()` against each object's surface, within "
+            f"{selection['tolerance']:.3f}): precision {fmt(selection['precision'])}, recall "
+            f"{fmt(selection['recall'])}.",
+            "",
+            "| object | precision | recall | selected | the object's Gaussians |",
+            "|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {name} | {fmt(o['precision'])} | {fmt(o['recall'])} | {o['selected']} | {o['gaussians']} |"
+            for name, o in selection["objects"].items()
+        ]
+        lines.append("")
+    lines += [
         "| view | PSNR | SSIM | mIoU | mAcc |",
         "|---|---|---|---|---|",
     ]

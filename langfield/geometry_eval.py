@@ -23,6 +23,9 @@ from langfield.field import LanguageField
 from langfield.scene import Scene
 
 FLOATER_TOLERANCE = 0.03  # x the scene bounds' diagonal: farther from every surface is a floater
+# x the bounds' diagonal (about 6 cm in the built-in room): a Gaussian belongs to the object whose surface
+# is nearest to its centre when that surface is within this distance (the mug is 9 cm across).
+SELECTION_TOLERANCE = 0.01
 MIN_ALPHA = 0.5  # pixels the render covers less than this are left out of the depth error
 
 
@@ -112,6 +115,57 @@ def count_floaters(field: LanguageField, scene: Scene, tolerance: float = FLOATE
     dist = distance_to_surfaces(scene.root, means)
     count = int((dist > tol).sum())
     return {"floaters": count, "fraction": count / max(len(means), 1), "tolerance": tol}
+
+
+def selection_scores(
+    field: LanguageField, scene: Scene, tolerance: float = SELECTION_TOLERANCE
+) -> dict | None:
+    """Precision and recall of the 3D text selection (``field.query(o).gaussians()``) of each object o.
+
+    Each whole-level object of the scene's ``gt/primitives.json`` is queried by its name. The object's
+    Gaussians are those whose centre's nearest true surface is one of the object's, within
+    ``tolerance`` x the bounds' diagonal (OpenGaussian and Dr.Splat score 3D queries against the
+    objects' geometry the same way). Precision: the fraction of the selected Gaussians that are the
+    object's (0 for an empty selection); recall: the fraction of the object's Gaussians selected.
+
+    Returns:
+        {"precision", "recall" (means over the objects that have Gaussians), "tolerance" (scene units),
+        "objects": {name: {"precision", "recall", "selected", "gaussians"}}}; None when the scene has no
+        ``gt/primitives.json`` or the field no language.
+    """
+    gt = Path(scene.root) / "gt"
+    if not (gt / "primitives.json").is_file() or field.decoder is None or not field.has_language:
+        return None
+    import json
+
+    from langfield.synthetic import distance_to_surfaces
+
+    objects = sorted({r["labels"]["whole"] for r in json.loads((gt / "primitives.json").read_text())})
+    bounds = np.asarray(field.meta["bounds"], dtype=np.float64)
+    tol = float(tolerance * np.linalg.norm(bounds[1] - bounds[0]))
+    means = field.splats["means"].detach().numpy()
+    dist = np.stack([distance_to_surfaces(scene.root, means, label=o, level="whole") for o in objects])
+    owner = np.where(dist.min(axis=0) <= tol, dist.argmin(axis=0), -1) if len(means) else np.zeros(0, int)
+    selections = field.query(objects, scene=scene).gaussians()
+    per_object: dict[str, dict[str, float | int | None]] = {}
+    for k, (name, sel) in enumerate(zip(objects, selections, strict=True)):
+        chosen = np.zeros(len(means), dtype=bool)
+        chosen[sel.indices.numpy()] = True
+        mine = owner == k
+        hits = int((chosen & mine).sum())
+        per_object[name] = {
+            "precision": hits / int(chosen.sum()) if chosen.any() else 0.0,
+            "recall": hits / int(mine.sum()) if mine.any() else None,
+            "selected": int(chosen.sum()),
+            "gaussians": int(mine.sum()),
+        }
+    scored = [v for v in per_object.values() if v["recall"] is not None]
+    return {
+        "precision": float(np.mean([v["precision"] for v in scored])) if scored else None,
+        "recall": float(np.mean([v["recall"] for v in scored])) if scored else None,
+        "tolerance": tol,
+        "objects": per_object,
+    }
 
 
 def observed_fraction(scene: Scene, split: str = "test", tolerance: float = 0.02) -> dict | None:

@@ -34,6 +34,8 @@ REPORT_KEYS = {
     "field_bytes",
     "backend",
     "feature_cosine",
+    "oracle",
+    "selection_3d",
     "views",
 }
 
@@ -116,6 +118,23 @@ def test_eval_scores_the_training_views_on_request(trained, scene_dir, tmp_path,
     report = json.loads(report_path.read_text())
     assert [v["name"] for v in report["views"]] == load_scene(scene_dir).names("train")
     assert "train views" in capsys.readouterr().out
+
+
+def test_eval_oracle_prints_the_ceiling_and_refuses_a_scene_without_caches(
+    trained, scene_dir, tmp_path, capsys
+) -> None:
+    out, _, _ = trained
+    assert main(["eval", str(out), "--json", str(tmp_path / "o.json"), "--oracle"]) == 0
+    report = json.loads((tmp_path / "o.json").read_text())
+    assert 0 < report["oracle"]["mIoU"] <= 1
+    assert report["oracle"]["ratio"] == pytest.approx(report["mIoU"] / report["oracle"]["mIoU"])
+    assert f"oracle on the true features: mIoU {report['oracle']['mIoU']:.3f}" in capsys.readouterr().out
+    bare = tmp_path / "room"
+    shutil.copytree(scene_dir, bare, ignore=shutil.ignore_patterns("test_000_*.npy"))
+    code = main(["eval", str(out), str(bare), "--json", str(tmp_path / "b.json"), "--oracle"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "test_000_f.npy: missing; --oracle" in err[0]
+    assert not (tmp_path / "b.json").exists()
 
 
 def test_eval_finds_the_scene_recorded_in_field_json(trained, tmp_path) -> None:
@@ -274,6 +293,13 @@ def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
 
 
 # ---------------------------------------------------------------- bad input
+
+
+def test_demo_refuses_a_negative_layout_before_writing(tmp_path, capsys) -> None:
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--layout", "-1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--layout" in err[0]
+    assert not (tmp_path / "demo").exists()
 
 
 def test_missing_scene_folder_exits_2_naming_it(tmp_path, capsys) -> None:

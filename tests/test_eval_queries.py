@@ -5,9 +5,12 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
+from typing import NamedTuple
 
 import cv2
 import numpy as np
+import open3d as o3d
 import pytest
 import torch
 from torch import Tensor, nn
@@ -16,8 +19,9 @@ from encoders.autoencoder import LanguageDecoder
 from encoders.cache import read_feature_cache
 from langfield import LanguageField, TrainConfig, evaluate, load_scene
 from langfield.evaluate import write_report
+from langfield.geometry_eval import selection_scores
 from langfield.synthetic import make_room
-from langfield.trainer import build_field
+from langfield.trainer import build_field, scene_bounds
 
 W, H = 64, 48
 
@@ -167,3 +171,105 @@ def test_a_text_encoder_can_be_given_to_the_evaluation(scene_dir, tmp_path) -> N
     scene = load_scene(_copy_scene(scene_dir, tmp_path / "room", table=False))
     report = evaluate(ground_truth_field(scene), scene, text_encoder=scene_dir / "text_embeddings.npz")
     assert report["mIoU"] == 1.0
+
+
+def test_the_oracle_scores_the_true_features_as_the_ground_truth_field(scene_dir, tmp_path) -> None:
+    # The ground-truth field renders each view's own mask features, so its queries are the oracle's.
+    scene = load_scene(scene_dir)
+    report = evaluate(ground_truth_field(scene), scene, oracle=True)
+    assert report["oracle"] == {"mIoU": 1.0, "mAcc": 1.0, "ratio": 1.0}
+    for view in report["views"]:
+        assert view["oracle_queries"] == view["queries"]
+    md = write_report(report, tmp_path / "report.json")
+    assert "Oracle" in md.read_text() and json.loads((tmp_path / "report.json").read_text())["oracle"]
+
+
+def test_the_oracle_does_not_follow_the_field(scene_dir) -> None:
+    scene = load_scene(scene_dir)
+    report = evaluate(ground_truth_field(scene, shift=1), scene, oracle=True)
+    oracle = report["oracle"]
+    assert oracle["mIoU"] == 1.0 and report["mIoU"] < 0.7
+    assert oracle["ratio"] == pytest.approx(report["mIoU"] / oracle["mIoU"])
+    assert evaluate(ground_truth_field(scene), scene)["oracle"] is None  # only when asked
+
+
+def test_the_oracle_refuses_a_view_without_a_feature_cache_before_any_render(scene_dir, tmp_path) -> None:
+    root = _copy_scene(scene_dir, tmp_path / "room")
+    for suffix in ("_f.npy", "_s.npy"):
+        (root / "language_features" / f"test_001{suffix}").unlink()
+    scene = load_scene(root)
+    field = ground_truth_field(load_scene(scene_dir))
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered before the check")
+
+    field.render = no_render
+    with pytest.raises(ValueError, match="test_001_f.npy: missing; --oracle"):
+        evaluate(field, scene, oracle=True)
+    with pytest.raises(ValueError, match="no language"):
+        evaluate(build_field(scene, TrainConfig(num_gaussians=200)), scene, oracle=True)
+
+
+# ---------------------------------------------------------------- 3D selection against the true surfaces
+
+
+class _Chosen(NamedTuple):
+    indices: Tensor
+
+
+class _SelectionField:
+    """A field of points on the room's surfaces whose 3D query answers are set by the test."""
+
+    def __init__(self, scene, means: np.ndarray, answers: dict[str, np.ndarray]) -> None:
+        self.meta = {"bounds": scene_bounds(scene, TrainConfig()).tolist()}
+        self.splats = {"means": torch.from_numpy(means).float()}
+        self.decoder, self.has_language, self.answers = object(), True, answers
+        self.queried: list[str] = []
+
+    def query(self, phrases, scene=None):
+        self.queried = list(phrases)
+        answers = [_Chosen(torch.from_numpy(self.answers.get(p, np.zeros(0, np.int64)))) for p in phrases]
+        return SimpleNamespace(gaussians=lambda: answers)
+
+
+def _surface_points(scene_dir: Path, whole: str, n: int, seed: int) -> np.ndarray:
+    records = json.loads((scene_dir / "gt" / "primitives.json").read_text())
+    mesh = o3d.io.read_triangle_mesh(str(scene_dir / "gt" / "mesh.ply"))
+    keep = np.concatenate([np.arange(*r["triangles"]) for r in records if r["labels"]["whole"] == whole])
+    mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[keep])
+    o3d.utility.random.seed(seed)
+    return np.asarray(mesh.sample_points_uniformly(n).points)
+
+
+def test_selection_precision_and_recall_against_the_objects_surfaces(scene_dir) -> None:
+    scene = load_scene(scene_dir)
+    parts = {name: _surface_points(scene_dir, name, 40, i) for i, name in enumerate(["sofa", "mug", "lamp"])}
+    floaters = np.array([[0.0, 0.0, 1.8], [0.5, -1.0, 2.0]])  # mid-air: nobody's Gaussians
+    means = np.concatenate([*parts.values(), floaters])
+    sofa, mug, lamp = (np.arange(40) + 40 * k for k in range(3))
+    answers = {
+        "sofa": sofa,  # exactly the sofa
+        "mug": np.concatenate([mug, lamp[:20], [120, 121]]),  # the mug, half the lamp, both floaters
+        "lamp": lamp[::2],  # half the lamp, nothing else
+        "table": np.zeros(0, np.int64),  # nothing
+    }
+    field = _SelectionField(scene, means, answers)
+    result = selection_scores(field, scene)
+    objects = result["objects"]
+    assert field.queried == sorted(objects) and {"sofa", "mug", "lamp", "table", "wall"} <= set(objects)
+    assert objects["sofa"] == {"precision": 1.0, "recall": 1.0, "selected": 40, "gaussians": 40}
+    assert objects["mug"]["precision"] == pytest.approx(40 / 62) and objects["mug"]["recall"] == 1.0
+    assert objects["lamp"]["precision"] == 1.0 and objects["lamp"]["recall"] == 0.5
+    # No Gaussian lies on the table or the walls: they have no recall and stay out of the means.
+    assert objects["table"] == {"precision": 0.0, "recall": None, "selected": 0, "gaussians": 0}
+    assert result["precision"] == pytest.approx((1 + 40 / 62 + 1) / 3)
+    assert result["recall"] == pytest.approx((1 + 1 + 0.5) / 3)
+    assert 0.03 < result["tolerance"] < 0.1  # 1 % of the room's bounds
+
+
+def test_selection_scores_need_ground_truth_and_language(scene_dir, tmp_path) -> None:
+    scene = load_scene(scene_dir)
+    assert selection_scores(build_field(scene, TrainConfig(num_gaussians=200)), scene) is None
+    bare = load_scene(_copy_scene(scene_dir, tmp_path / "room"))
+    shutil.rmtree(tmp_path / "room" / "gt")
+    assert selection_scores(_SelectionField(bare, np.zeros((3, 3)), {}), bare) is None
