@@ -1,0 +1,74 @@
+"""Training-free language: each Gaussian's latents as the rendering-weighted mean of the training views'
+mask latents (Occam's LGS, Cheng et al. 2024, and Dr.Splat aggregate features onto Gaussians this way).
+
+A rendered channel is ``L(p) = sum_i w_i(p) c_i`` over the Gaussians i at pixel p, so the gradient of
+``sum_p <L(p), t(p)>`` with respect to ``c_i`` is ``sum_p w_i(p) t(p)``: one forward and backward pass
+of the rasterizer per view gives every Gaussian's weighted sum of the targets ``t``, and with the
+targets' valid masks as ``t`` the sum of its weights. The rasterizer is the tested one (values and
+gradients against the torch reference), so nothing here re-implements blending.
+
+Example:
+    >>> # field trained (or geometry-only), targets = langfield.trainer.language_targets(scene, cfg)
+    >>> # latents, weight = aggregate_latents(field, cameras, targets.latents, targets.valid)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+from torch import Tensor, nn
+
+from langfield.camera import Camera
+from langfield.field import LANGUAGE_CHANNELS, LanguageField
+
+__all__ = ["aggregate_latents", "with_latents"]
+
+
+def with_latents(field: LanguageField, latents: Tensor) -> LanguageField:
+    """A field sharing ``field``'s Gaussians, colour field and decoder whose language is the
+    per-Gaussian ``latents`` [N, 3, 3] (the hash grid, if any, left out)."""
+    splats = dict(field.splats)
+    splats["lang"] = nn.Parameter(latents.reshape(len(latents), LANGUAGE_CHANNELS).detach().clone())
+    meta = dict(field.meta)
+    return LanguageField(splats, field.color, meta, None, field.decoder)
+
+
+def aggregate_latents(
+    field: LanguageField,
+    cameras: Mapping[str, Camera],
+    latents: Mapping[str, Tensor],
+    valid: Mapping[str, Tensor],
+    backend: str = "auto",
+) -> tuple[Tensor, Tensor]:
+    """Every Gaussian's rendering-weighted mean of the views' target latents, per level.
+
+    Args:
+        field: the Gaussians (their language, if any, is not used).
+        cameras: view name -> camera.
+        latents: view name -> [3, H, W, 3] latent of the mask at each pixel and level.
+        valid: view name -> [3, H, W] bool, pixels with a mask at that level.
+
+    Returns:
+        ``(latents [N, 3, 3], weight [N, 3])``: the weighted mean latent, scaled to unit length (zero
+        where a Gaussian has no weight at that level), and the summed weight behind it.
+    """
+    n = field.num_gaussians
+    total = torch.zeros(n, LANGUAGE_CHANNELS)
+    weight = torch.zeros(n, LANGUAGE_CHANNELS)
+    for name, cam in cameras.items():
+        mask = valid[name].float()  # [3, H, W]
+        target = latents[name] * mask[..., None]  # [3, H, W, 3]
+        ones = mask[..., None].expand(-1, -1, -1, target.shape[-1])
+        for goal, acc in ((target, total), (ones, weight)):
+            probe = with_latents(field, torch.zeros(n, 3, 3))
+            leaf = probe.splats["lang"]
+            frozen = {k: v.detach() for k, v in probe.splats.items() if k != "lang"}
+            probe.splats.update(frozen)
+            out = probe.render(cam, backend=backend, hard_depth=False)
+            (grad,) = torch.autograd.grad((out.latents * goal).sum(), [leaf])
+            acc += grad
+    weight = weight.reshape(n, 3, 3)[..., 0]
+    mean = total.reshape(n, 3, 3)
+    norm = mean.norm(dim=-1, keepdim=True)
+    return torch.where(norm > 0, mean / norm.clamp_min(1e-12), torch.zeros_like(mean)), weight

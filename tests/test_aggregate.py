@@ -1,0 +1,94 @@
+"""Training-free language (langfield/aggregate.py): rendering-weighted means of the views' latents."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from langfield import TrainConfig, load_scene
+from langfield.aggregate import aggregate_latents, with_latents
+from langfield.synthetic import make_room
+from langfield.trainer import build_field, language_targets
+
+W, H = 40, 30
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H))
+
+
+@pytest.fixture(scope="module")
+def field(scene):
+    torch.manual_seed(0)
+    field = build_field(scene, TrainConfig(num_gaussians=24, init="random"))
+    with torch.no_grad():  # opaque, wide Gaussians so that every one is seen by some view
+        field.splats["opacity_logits"].fill_(2.0)
+        field.splats["log_scales"].add_(1.0)
+    return field
+
+
+def _targets(scene):
+    return language_targets(scene, TrainConfig(autoencoder_iterations=20), progress=False)
+
+
+def _weights_by_forward_passes(field, cam) -> torch.Tensor:
+    """[N, H, W] each Gaussian's blending weight at every pixel, from one forward render per Gaussian
+    whose latent is 1 in one channel and 0 elsewhere (no gradient involved)."""
+    n = field.num_gaussians
+    maps = []
+    with torch.no_grad():
+        for i in range(n):
+            latents = torch.zeros(n, 3, 3)
+            latents[i, 0, 0] = 1.0
+            maps.append(with_latents(field, latents).render(cam, hard_depth=False).latents[0, ..., 0])
+    return torch.stack(maps)
+
+
+def test_the_gradient_pass_equals_the_weighted_sums_of_forward_renders(field, scene) -> None:
+    targets = _targets(scene)
+    names = scene.names("train")
+    cameras = {n: scene.camera(n) for n in names}
+    latents, weight = aggregate_latents(field, cameras, targets.latents, targets.valid)
+    total = torch.zeros(field.num_gaussians, 3, 3)
+    expected_weight = torch.zeros(field.num_gaussians, 3)
+    for name in names:
+        w = _weights_by_forward_passes(field, cameras[name])  # [N, H, W]
+        valid = targets.valid[name].float()  # [3, H, W]
+        total += torch.einsum("nhw,lhwc->nlc", w, targets.latents[name] * valid[..., None])
+        expected_weight += torch.einsum("nhw,lhw->nl", w, valid)
+    torch.testing.assert_close(weight, expected_weight, rtol=1e-4, atol=1e-4)
+    seen = expected_weight > 1e-3
+    assert int(seen[:, 0].sum()) >= 5  # the test exercises real sums
+    expected = total / total.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    torch.testing.assert_close(latents[seen], expected[seen], rtol=1e-4, atol=1e-4)
+    assert torch.allclose(latents[seen].norm(dim=-1), torch.ones(int(seen.sum())), atol=1e-5)
+
+
+def test_a_gaussian_no_view_sees_and_a_level_without_masks_give_zero(field, scene) -> None:
+    targets = _targets(scene)
+    name = scene.names("train")[0]
+    cam = scene.camera(name)
+    hidden = build_field(scene, TrainConfig(num_gaussians=24, init="random"))
+    with torch.no_grad():  # one Gaussian behind the camera, one exactly at its centre
+        hidden.splats["means"][0] = torch.from_numpy(cam.c2w[:3, 3] - cam.forward).float()
+        hidden.splats["means"][1] = torch.from_numpy(cam.c2w[:3, 3]).float()
+    valid = {name: targets.valid[name].clone()}
+    valid[name][1] = False  # no masks at the part level
+    latents, weight = aggregate_latents(hidden, {name: cam}, targets.latents, valid)
+    assert torch.isfinite(latents).all() and torch.isfinite(weight).all()
+    assert weight[:2].abs().max() == 0 and latents[:2].abs().max() == 0
+    assert weight[:, 1].abs().max() == 0 and latents[:, 1].abs().max() == 0
+
+
+def test_with_latents_shares_the_geometry_and_renders_the_given_latents(field, scene) -> None:
+    constant = torch.nn.functional.normalize(torch.tensor([1.0, 2.0, 2.0]), dim=0)
+    other = with_latents(field, constant.expand(field.num_gaussians, 3, 3))
+    assert other.splats["means"] is field.splats["means"] and other.language is None
+    with torch.no_grad():
+        out = other.render(scene.camera(0), hard_depth=False)
+    covered = out.alpha > 0.999
+    assert covered.any()
+    torch.testing.assert_close(
+        out.latents[:, covered], constant.expand(3, int(covered.sum()), 3), atol=1e-3, rtol=0
+    )

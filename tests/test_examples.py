@@ -1,0 +1,42 @@
+"""The scripts in examples/ run (on a tiny field) and say what they promise."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from langfield import TrainConfig, load_scene, train
+from langfield.synthetic import make_room
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _module(name: str):
+    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def tiny_field(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("examples")
+    scene = load_scene(make_room(root / "room", seed=0, width=48, height=36))
+    cfg = TrainConfig(iterations=30, num_gaussians=400, autoencoder_iterations=30, language_start=0.0)
+    train(scene, cfg, progress=False).save(root / "field")
+    return root / "field"
+
+
+def test_language_losses_tabulates_every_stage(tiny_field, tmp_path, capsys) -> None:
+    out = tmp_path / "losses.json"
+    assert _module("language_losses").main([str(tiny_field), "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["decoder_difference"] == 0.0  # the autoencoder refits exactly as training fitted it
+    rows = result["rows"]
+    assert rows["oracle"]["mIoU"] > 0.95
+    assert any(key.startswith("aggregated latents") for key in rows)
+    assert all(0.0 <= r["mIoU"] <= 1.0 for r in rows.values())
+    assert "| field |" in capsys.readouterr().out
