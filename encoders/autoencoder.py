@@ -66,6 +66,9 @@ class AutoencoderConfig:
         batch_size: rows per step, drawn without replacement each step; clamped to the number of features
             so a small scene trains full-batch. LangSplat: 64.
         cosine_weight: weight ``w`` of the cosine term of eq. 2 (LangSplat: 0.001).
+        spread_weight: weight of :func:`spread_loss`, which pushes the latents of unlike features
+            apart on the sphere (0: eq. 2 alone, as LangSplat).
+        spread_temperature: ``t`` of :func:`spread_loss`.
         seed: seeds the initialisation and the batch sampling.
         eps: floor of the norm when normalising encoder and decoder outputs.
     """
@@ -78,6 +81,8 @@ class AutoencoderConfig:
     final_lr_fraction: float = 0.05
     batch_size: int = 512
     cosine_weight: float = 1e-3
+    spread_weight: float = 0.0
+    spread_temperature: float = 10.0
     seed: int = 0
     eps: float = 1e-8
 
@@ -95,6 +100,11 @@ class AutoencoderConfig:
         if self.lr <= 0 or not 0 < self.final_lr_fraction <= 1:
             raise ValueError(
                 f"need lr > 0 and 0 < final_lr_fraction <= 1, got {self.lr}, {self.final_lr_fraction}"
+            )
+        if self.spread_weight < 0 or self.spread_temperature <= 0:
+            raise ValueError(
+                f"need spread_weight >= 0 and spread_temperature > 0, got {self.spread_weight}, "
+                f"{self.spread_temperature}"
             )
         if self.cosine_weight < 0 or self.eps <= 0:
             raise ValueError(f"need cosine_weight >= 0 and eps > 0, got {self.cosine_weight}, {self.eps}")
@@ -238,6 +248,32 @@ def autoencoder_loss(x: Tensor, x_hat: Tensor, cosine_weight: float = 1e-3) -> T
     return mse + cosine_weight * (1.0 - cos)
 
 
+def spread_loss(z: Tensor, x: Tensor, temperature: float = 10.0) -> Tensor:
+    """Uniformity of the latents on the sphere (Wang and Isola, ICML 2020), each pair weighted by how
+    unlike its features are: ``log(sum_ij w_ij exp(-t |z_i - z_j|^2) / sum_ij w_ij)`` with
+    ``w_ij = max(0, 1 - cos(x_i, x_j))`` off the diagonal.
+
+    A 3-d latent holds a scene's few dozen concepts; eq. 2 alone packs them a few degrees apart, and a
+    rendered latent a few degrees off then decodes to a neighbour's feature. Repeats of one concept
+    (cosine near 1) weigh nothing, so they stay together.
+
+    Args:
+        z: latents ``[M, d]``.
+        x: their features ``[M, D]`` (unit rows).
+        temperature: ``t``; larger pushes only near neighbours.
+
+    Returns:
+        scalar, 0 or below; 0 when no pair differs.
+    """
+    xn = F.normalize(x, dim=-1)
+    w = (1.0 - xn @ xn.T).clamp_min(0.0)
+    w = w * (1.0 - torch.eye(len(x), dtype=w.dtype))
+    if float(w.sum()) <= 0.0:
+        return z.sum() * 0.0
+    d2 = torch.cdist(z, z).square()
+    return torch.log((w * torch.exp(-temperature * d2)).sum() / w.sum())
+
+
 @torch.no_grad()
 def _init_from_features(ae: LanguageAutoencoder, x: Tensor) -> None:
     """Data-dependent start: the encoder sees centred features, the decoder outputs the mean feature.
@@ -299,10 +335,12 @@ def train_autoencoder(
     )
     for step in bar:
         xb = x if batch == m else x[torch.randperm(m, generator=gen)[:batch]]
-        _, x_hat = ae(xb)
+        z, x_hat = ae(xb)
         loss = autoencoder_loss(xb, x_hat, cfg.cosine_weight)
         if step == 0:
             initial = loss.item()
+        if cfg.spread_weight > 0:
+            loss = loss + cfg.spread_weight * spread_loss(z, xb, cfg.spread_temperature)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

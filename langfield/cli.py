@@ -98,7 +98,7 @@ def train_config(args: argparse.Namespace):
     )
     # Flags left unset keep TrainConfig's defaults.
     given = {name: getattr(args, name) for name in SPARSE_VIEW_FLAGS if getattr(args, name) is not None}
-    for name in ("lambda_opacity", "language_start"):
+    for name in ("lambda_opacity", "language_start", "autoencoder_spread"):
         if getattr(args, name) is not None:
             given[name] = getattr(args, name)
     return replace(cfg, **given)
@@ -366,6 +366,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="fraction of the run before the language term starts (default 0.33, the half-size start)",
+    )
+    p.add_argument(
+        "--autoencoder-spread",
+        type=float,
+        default=None,
+        help="weight of the autoencoder's term that spreads unlike concepts over the latent sphere "
+        "(default 0: the paper's eq. 2 alone)",
     )
     p.add_argument(
         "--lambda-opacity",

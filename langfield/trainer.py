@@ -111,6 +111,8 @@ class TrainConfig:
     # 0.530 from iteration 0, training 10 % shorter (docs/figures.md).
     language_start: float = 0.33
     autoencoder_iterations: int = 300
+    # Weight of the autoencoder's spread term (encoders.autoencoder.spread_loss); 0: eq. 2 alone.
+    autoencoder_spread: float = 0.0
     depth: bool | None = None  # None: when every training view has a depth prior (depths/)
     lad: bool = True  # False: the plain global depth term only (the --no-lad ablation)
     # L_D's normalised terms are scale-invariant: their gradient grows as 1 / std of the render, which
@@ -198,6 +200,7 @@ CONFIG_FLAGS = {
     "language_features": "--language-features",
     "language_grid_scale": "--language-grid-scale",
     "language_start": "--language-start",
+    "autoencoder_spread": "--autoencoder-spread",
     "lambda_opacity": "--lambda-opacity",
     "drop_gamma": "--drop-gamma",
     "lambda_virtual": "--lambda-virtual",
@@ -297,6 +300,7 @@ def check_config(cfg: TrainConfig) -> None:
     number("carve_tolerance", 0.0, 1.0)
     number("half_resolution_until", 0.0, 1.0)
     number("language_start", 0.0, 1.0, open_low=False)
+    number("autoencoder_spread", 0.0, open_low=False)
     number("opacity_decay", 0.0, 1.0, open_low=True)
     number("lambda_empty", 0.0)
     number("lambda_anisotropy", 0.0)
@@ -439,7 +443,9 @@ def language_targets(scene: Scene, cfg: TrainConfig, progress: bool = True) -> L
     features = np.concatenate([c.features for c in caches.values()])
     if features.shape[0] == 0:
         raise ValueError(f"{scene.root}/language_features: the training views' caches hold no masks")
-    ae_cfg = AutoencoderConfig(iterations=cfg.autoencoder_iterations, seed=cfg.seed)
+    ae_cfg = AutoencoderConfig(
+        iterations=cfg.autoencoder_iterations, seed=cfg.seed, spread_weight=cfg.autoencoder_spread
+    )
     autoencoder, stats = fit_autoencoder(features, ae_cfg, progress=progress)
     latents, valid, segments = {}, {}, {}
     per_level: list[list[Tensor]] = [[] for _ in range(N_LEVELS)]

@@ -21,6 +21,7 @@ from encoders.autoencoder import (
     decoder_state,
     encoder_state,
     load_decoder,
+    spread_loss,
     train_autoencoder,
 )
 
@@ -158,6 +159,38 @@ def test_training_reconstructs_clustered_concepts(trained: tuple) -> None:
         c = torch.from_numpy(concepts)
         recon = ae.decode(ae.encode(c))
     assert F.cosine_similarity(recon, c, dim=-1).mean().item() >= 0.95
+
+
+def test_spread_loss_by_hand_and_its_degenerate_cases() -> None:
+    x = torch.eye(3)[:2]  # two unlike features (cosine 0): weight 1 each way
+    z = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # |z0 - z1|^2 = 2
+    assert spread_loss(z, x, temperature=3.0).item() == pytest.approx(-6.0)
+    assert spread_loss(torch.zeros(2, 3), x).item() == pytest.approx(0.0)  # together: log 1
+    same = torch.ones(4, 3) / 3**0.5  # repeats of one feature weigh nothing, wherever their latents lie
+    loss = spread_loss(torch.randn(4, 3, requires_grad=True), same)
+    assert loss.item() == 0.0 and loss.requires_grad
+    assert torch.isfinite(spread_loss(torch.zeros(1, 3), torch.ones(1, 3))).all()  # one row
+
+
+def _nearest_concept_angles(ae: LanguageAutoencoder, concepts: np.ndarray) -> torch.Tensor:
+    with torch.no_grad():
+        z = ae.encode(torch.from_numpy(concepts))
+    angles = torch.rad2deg(torch.acos((z @ z.T).clamp(-1, 1)))
+    return angles.fill_diagonal_(360.0).amin(dim=1)
+
+
+def test_the_spread_term_moves_unlike_concepts_apart_and_keeps_the_reconstruction() -> None:
+    features, concepts = clustered_features(n_concepts=30, repeats=3)
+    plain, _ = train_autoencoder(features, progress=False)
+    spread, stats = train_autoencoder(features, AutoencoderConfig(spread_weight=1e-3), progress=False)
+    before, after = _nearest_concept_angles(plain, concepts), _nearest_concept_angles(spread, concepts)
+    assert after.median() > 1.5 * before.median() and after.min() > before.min()
+    assert stats["mean_cosine"] >= 0.98
+    with torch.no_grad():  # a concept's repeats still share its latent
+        z = spread.encode(torch.from_numpy(features)).reshape(30, 3, 3)
+    assert F.cosine_similarity(z, z.mean(1, keepdim=True), dim=-1).min() > 0.99
+    with pytest.raises(ValueError, match="spread_weight"):
+        AutoencoderConfig(spread_weight=-1.0)
 
 
 def test_training_is_deterministic_with_the_seed() -> None:
