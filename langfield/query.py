@@ -53,7 +53,7 @@ from encoders.protocols import TextEncoder, check_phrases
 from encoders.text_table import TableTextEncoder
 from langfield import gaussians as G
 from langfield.camera import Camera
-from langfield.field import TEXT_TABLE_FILE, LanguageField, Render
+from langfield.field import LATENT_NORM_EPS, TEXT_TABLE_FILE, LanguageField, Render
 from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS
 from langfield.ply import write_gaussian_ply
 from langfield.raster import rasterize
@@ -85,8 +85,8 @@ __all__ = [
     "text_encoder_for",
 ]
 
-# Lattice points per axis, and the half-width of the latent cube they cover. Rendered latents are
-# blends of latents trained towards the unit sphere: on the built-in scene 99 % have norm below 1.3.
+# Lattice points per axis, and the half-width of the latent cube they cover. Latents are read at unit
+# length, as field.decode reads them, well inside the cube.
 # 49 points (spacing 0.0625) cost about 75k decoded points, about a second, once per field.
 LATTICE_SIZE = 49
 LATTICE_RADIUS = 1.5
@@ -391,6 +391,7 @@ class _Shared:
         """``[L, H, W, 3]`` latents -> ``[Q, L, H, W]`` relevancy by the lattice (module docstring)."""
         lattice, channels = self.lattice_channels()
         with torch.no_grad():
+            latents = F.normalize(latents, dim=-1, eps=LATENT_NORM_EPS)  # as field.decode reads them
             grid = (latents / lattice.radius).clamp(-1.0, 1.0)[None]
             values = F.grid_sample(channels, grid, mode="bilinear", align_corners=True)[0]
             cosines = values[:-1] / values[-1:].clamp_min(EMBEDDING_EPS**2).sqrt()

@@ -169,3 +169,12 @@ def test_autoencoder_is_trained_once_per_features_and_config():
     _, other = fit_autoencoder(features[:-1], cfg, progress=False)
     _, longer = fit_autoencoder(features, AutoencoderConfig(iterations=6, seed=0), progress=False)
     assert "reused" not in other and "reused" not in longer
+
+
+def test_decode_reads_each_latent_at_unit_length(field):
+    # A rendered latent is a blend, shorter than the unit latents the decoder was trained on.
+    z = torch.nn.functional.normalize(torch.randn(7, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    with torch.no_grad():
+        torch.testing.assert_close(field.decode(0.6 * z), field.decode(z))
+        torch.testing.assert_close(field.decode(torch.zeros(2, 3)), field.decoder.decode(torch.zeros(2, 3)))
+        assert not torch.allclose(field.decoder.decode(0.6 * z), field.decoder.decode(z), atol=1e-3)
