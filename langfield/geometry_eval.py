@@ -136,15 +136,12 @@ def selection_scores(
     gt = Path(scene.root) / "gt"
     if not (gt / "primitives.json").is_file() or field.decoder is None or not field.has_language:
         return None
-    import json
+    from langfield.synthetic import distances_to_objects
 
-    from langfield.synthetic import distance_to_surfaces
-
-    objects = sorted({r["labels"]["whole"] for r in json.loads((gt / "primitives.json").read_text())})
     bounds = np.asarray(field.meta["bounds"], dtype=np.float64)
     tol = float(tolerance * np.linalg.norm(bounds[1] - bounds[0]))
     means = field.splats["means"].detach().numpy()
-    dist = np.stack([distance_to_surfaces(scene.root, means, label=o, level="whole") for o in objects])
+    objects, dist = distances_to_objects(scene.root, means, level="whole")
     owner = np.where(dist.min(axis=0) <= tol, dist.argmin(axis=0), -1) if len(means) else np.zeros(0, int)
     selections = field.query(objects, scene=scene).gaussians()
     per_object: dict[str, dict[str, float | int | None]] = {}

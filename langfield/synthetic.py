@@ -49,6 +49,7 @@ __all__ = [
     "MIN_MASK_PIXELS",
     "SYNONYMS",
     "distance_to_surfaces",
+    "distances_to_objects",
     "make_room",
     "room_layout",
 ]
@@ -209,6 +210,35 @@ def distance_to_surfaces(
     raycaster = o3d.t.geometry.RaycastingScene()
     raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     return raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float32)
+
+
+def distances_to_objects(
+    scene_dir: str | Path, points: np.ndarray, level: str = "whole"
+) -> tuple[list[str], np.ndarray]:
+    """Unsigned distance from each point to each object's true surface, the objects being the labels
+    of one level (e.g. every whole-level object: "sofa", "mug", ...).
+
+    Returns:
+        (the labels, sorted; [K, N] float32 distances, row k to the primitives labelled k).
+    """
+    gt = Path(scene_dir) / "gt"
+    if level not in LEVELS:
+        raise ValueError(f"distances_to_objects: level must be one of {LEVELS}, got {level!r}")
+    pts = np.asarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"distances_to_objects: points must have shape [N, 3], got {pts.shape}")
+    records = json.loads((gt / "primitives.json").read_text())
+    mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
+    triangles = np.asarray(mesh.triangles)
+    labels = sorted({r["labels"][level] for r in records})
+    rows = []
+    for label in labels:
+        keep = np.concatenate([np.arange(*r["triangles"]) for r in records if r["labels"][level] == label])
+        part = o3d.geometry.TriangleMesh(mesh.vertices, o3d.utility.Vector3iVector(triangles[keep]))
+        raycaster = o3d.t.geometry.RaycastingScene()
+        raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(part))
+        rows.append(raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float32))
+    return labels, np.stack(rows) if rows else np.zeros((0, len(pts)), np.float32)
 
 
 # ----------------------------------------------------------------------------------------- geometry

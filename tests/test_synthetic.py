@@ -18,6 +18,7 @@ from langfield.synthetic import (
     LEVELS,
     SYNONYMS,
     distance_to_surfaces,
+    distances_to_objects,
     make_room,
     room_layout,
 )
@@ -197,6 +198,17 @@ def test_distance_to_surfaces(scene: Path) -> None:
         distance_to_surfaces(scene, np.array([top]), label="table top", level="whole")
     with pytest.raises(ValueError, match="level must be one of"):
         distance_to_surfaces(scene, np.array([top]), label="table", level="room")
+
+
+def test_distances_to_objects_equal_the_labelled_distances(scene: Path) -> None:
+    points = np.random.default_rng(0).uniform([-2, -0.5, 0], [2, 2, 2], (50, 3))
+    labels, dist = distances_to_objects(scene, points)
+    assert {"sofa", "mug", "table", "wall", "floor"} <= set(labels) and dist.shape == (len(labels), 50)
+    for k, label in enumerate(labels):
+        np.testing.assert_allclose(dist[k], distance_to_surfaces(scene, points, label=label, level="whole"))
+    np.testing.assert_allclose(dist.min(axis=0), distance_to_surfaces(scene, points), atol=1e-6)
+    with pytest.raises(ValueError, match="level"):
+        distances_to_objects(scene, points, level="room")
 
 
 def test_text_embeddings_hold_labels_synonyms_and_canonical_phrases(scene: Path) -> None:
