@@ -61,7 +61,7 @@ def main(argv: list[str]) -> int:
     )
     args = parser.parse_args(argv)
     field = LanguageField.load(args.field)
-    scene = load_scene(args.scene or field.meta["scene"])
+    scene = load_scene(args.scene or field.meta["scene"], **(field.meta.get("scene_args") or {}))
     names = scene.names(args.split)
     labels = {name: scene.segmentations(name) for name in names}
     phrases = sorted({p for masks in labels.values() for p in masks})

@@ -28,9 +28,11 @@ __all__ = ["aggregate_latents", "with_latents"]
 def with_latents(field: LanguageField, latents: Tensor) -> LanguageField:
     """A field sharing ``field``'s Gaussians, colour field and decoder whose language is the
     per-Gaussian ``latents`` [N, 3, 3] (the hash grid, if any, left out)."""
-    splats = dict(field.splats)
+    splats = nn.ParameterDict(dict(field.splats))
     splats["lang"] = nn.Parameter(latents.reshape(len(latents), LANGUAGE_CHANNELS).detach().clone())
     meta = dict(field.meta)
+    if meta.get("language"):  # field.json then says what the latents are
+        meta["language"] = {**meta["language"], "features": "per-gaussian"}
     return LanguageField(splats, field.color, meta, None, field.decoder)
 
 
@@ -53,9 +55,14 @@ def aggregate_latents(
         ``(latents [N, 3, 3], weight [N, 3])``: the weighted mean latent, scaled to unit length (zero
         where a Gaussian has no weight at that level), and the summed weight behind it.
     """
+    missing = [name for name in cameras if name not in latents or name not in valid]
+    if missing:
+        raise ValueError(f"aggregate_latents: no target latents for views {missing}")
     n = field.num_gaussians
     total = torch.zeros(n, LANGUAGE_CHANNELS)
     weight = torch.zeros(n, LANGUAGE_CHANNELS)
+    if n == 0:
+        return total.reshape(0, 3, 3), weight.reshape(0, 3, 3)[..., 0]
     for name, cam in cameras.items():
         mask = valid[name].float()  # [3, H, W]
         target = latents[name] * mask[..., None]  # [3, H, W, 3]
@@ -66,8 +73,9 @@ def aggregate_latents(
             frozen = {k: v.detach() for k, v in probe.splats.items() if k != "lang"}
             probe.splats.update(frozen)
             out = probe.render(cam, backend=backend, hard_depth=False)
-            (grad,) = torch.autograd.grad((out.latents * goal).sum(), [leaf])
-            acc += grad
+            (grad,) = torch.autograd.grad((out.latents * goal).sum(), [leaf], allow_unused=True)
+            if grad is not None:  # None: no Gaussian reaches the view
+                acc += grad
     weight = weight.reshape(n, 3, 3)[..., 0]
     mean = total.reshape(n, 3, 3)
     norm = mean.norm(dim=-1, keepdim=True)

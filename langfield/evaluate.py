@@ -78,6 +78,8 @@ def evaluate(
         check_oracle(field, scene, names)
     labels = {name: scene.segmentations(name) for name in names} if field.decoder is not None else {}
     embeddings = _label_embeddings(field, labels, text_encoder, scene)
+    # Before any render: an object name the text encoder lacks stops the evaluation at once.
+    selection = selection_scores(field, scene, text_encoder=text_encoder) if embeddings is not None else None
     oracle_records: list[dict[str, float | bool]] = []
     with torch.no_grad():
         for name in names:
@@ -136,7 +138,7 @@ def evaluate(
         "backend": m.get("backend"),
         "feature_cosine": _level_means(cosines),
         "oracle": _oracle_summary(summary, oracle_records) if oracle else None,
-        "selection_3d": selection_scores(field, scene),
+        "selection_3d": selection,
         "views": views,
     }
 

@@ -50,7 +50,8 @@ TEXT_TABLE_FILE = "text_embeddings.npz"
 HARD_DEPTH_OPACITY = 0.99  # mu in eq. 7 (the paper; DNGaussian uses 0.95)
 
 
-# Below this norm a latent is treated as zero by decode (an empty pixel, a level without masks).
+# decode divides a latent by max(|z|, this): a zero latent (an empty pixel, a level without masks) stays
+# zero, and only latents shorter than this are not brought to unit length.
 LATENT_NORM_EPS = 1e-6
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from encoders.protocols import TextEncoder
 from langfield.camera import Camera
 from langfield.field import LanguageField
 from langfield.scene import Scene
@@ -118,7 +119,10 @@ def count_floaters(field: LanguageField, scene: Scene, tolerance: float = FLOATE
 
 
 def selection_scores(
-    field: LanguageField, scene: Scene, tolerance: float = SELECTION_TOLERANCE
+    field: LanguageField,
+    scene: Scene,
+    tolerance: float = SELECTION_TOLERANCE,
+    text_encoder: TextEncoder | str | Path | None = None,
 ) -> dict | None:
     """Precision and recall of the 3D text selection (``field.query(o).gaussians()``) of each object o.
 
@@ -127,6 +131,7 @@ def selection_scores(
     ``tolerance`` x the bounds' diagonal (OpenGaussian and Dr.Splat score 3D queries against the
     objects' geometry the same way). Precision: the fraction of the selected Gaussians that are the
     object's (0 for an empty selection); recall: the fraction of the object's Gaussians selected.
+    ``text_encoder`` embeds the object names (default the field's own; see ``LanguageField.query``).
 
     Returns:
         {"precision", "recall" (means over the objects that have Gaussians), "tolerance" (scene units),
@@ -143,7 +148,7 @@ def selection_scores(
     means = field.splats["means"].detach().numpy()
     objects, dist = distances_to_objects(scene.root, means, level="whole")
     owner = np.where(dist.min(axis=0) <= tol, dist.argmin(axis=0), -1) if len(means) else np.zeros(0, int)
-    selections = field.query(objects, scene=scene).gaussians()
+    selections = field.query(objects, text_encoder, scene=scene).gaussians()
     per_object: dict[str, dict[str, float | int | None]] = {}
     for k, (name, sel) in enumerate(zip(objects, selections, strict=True)):
         chosen = np.zeros(len(means), dtype=bool)

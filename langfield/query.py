@@ -20,9 +20,8 @@ pixels' latents up in a lattice over the latent cube ``[-LATTICE_RADIUS, LATTICE
 
 The decoder is a ReLU network, so ``u`` is piecewise linear in the latent and the projections are exact
 inside a cell that one linear piece covers; elsewhere the error is measured against the exact decode
-(``exact=True``, which the evaluation uses) in tests/test_query.py. Rendered latents are blends of the
-Gaussians' latents, which are trained towards unit vectors, so nearly all of them lie in the lattice;
-the few that do not are decoded exactly.
+(``exact=True``, which the evaluation uses) in tests/test_query.py. Latents are read at unit length, as
+``LanguageField.decode`` reads them, so every one lies inside the lattice's cube.
 
 Per view, a query rasterizes only the nine latent channels, with every Gaussian's latents computed
 once per query (they do not depend on the camera).
@@ -398,9 +397,6 @@ class _Shared:
             # relevancy = min_c sigmoid(t (s_q - s_c)) = sigmoid(t (s_q - max_c s_c)), LERF sec. 3.4
             q = self.n_phrases
             rel = torch.sigmoid(TEMPERATURE * (cosines[:q] - cosines[q:].amax(dim=0, keepdim=True)))
-            outside = latents.norm(dim=-1) > lattice.radius
-            if outside.any():
-                rel[:, outside] = self.exact_relevancy(latents[outside])
         return rel
 
 

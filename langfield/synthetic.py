@@ -294,11 +294,20 @@ class _Placement:
 
 def room_layout(layout: int) -> list[_Placement]:
     """The furniture of layout ``layout``: 0 is the built-in room (every group at home); any other
-    number draws which groups stand in the room (at least three; a second chair sometimes), their
-    sizes and their places on the floor, without overlaps, from its own random stream."""
+    number draws which groups stand in the room (at least three placed; a second chair sometimes),
+    their sizes and their places on the floor, from its own random stream. Footprints are drawn 5 cm
+    apart; make_room then shifts each group by up to 5 cm with the scene's seed, so two groups may
+    touch and a group against the back wall may reach 2 cm into it."""
     if layout == 0:
         return [_Placement(kind) for kind in _GROUPS]
     rng = np.random.default_rng([layout, _STREAM_ARRANGE])
+    placed: list[_Placement] = []
+    while len(placed) < 3:  # a draw that fits fewer (a large sofa can leave no room for the shelf) is redrawn
+        placed = _draw_layout(rng)
+    return placed
+
+
+def _draw_layout(rng: np.random.Generator) -> list[_Placement]:
     kinds = [k for k in _GROUPS if rng.random() < 0.75]
     while len(kinds) < 3:
         kinds = sorted({*kinds, str(rng.choice(list(_GROUPS)))}, key=list(_GROUPS).index)

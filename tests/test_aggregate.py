@@ -92,3 +92,17 @@ def test_with_latents_shares_the_geometry_and_renders_the_given_latents(field, s
     torch.testing.assert_close(
         out.latents[:, covered], constant.expand(3, int(covered.sum()), 3), atol=1e-3, rtol=0
     )
+
+
+def test_no_gaussians_and_a_view_without_targets(field, scene) -> None:
+    targets = _targets(scene)
+    name = scene.names("train")[0]
+    empty = with_latents(field, torch.zeros(field.num_gaussians, 3, 3))
+    keep = torch.zeros(field.num_gaussians, dtype=torch.bool)
+    empty.splats = torch.nn.ParameterDict(
+        {k: torch.nn.Parameter(v.detach()[keep]) for k, v in empty.splats.items()}
+    )
+    latents, weight = aggregate_latents(empty, {name: scene.camera(name)}, targets.latents, targets.valid)
+    assert latents.shape == (0, 3, 3) and weight.shape == (0, 3)
+    with pytest.raises(ValueError, match="no target latents for views"):
+        aggregate_latents(field, {"elsewhere": scene.camera(name)}, targets.latents, targets.valid)

@@ -226,7 +226,7 @@ class _SelectionField:
         self.decoder, self.has_language, self.answers = object(), True, answers
         self.queried: list[str] = []
 
-    def query(self, phrases, scene=None):
+    def query(self, phrases, text_encoder=None, scene=None):
         self.queried = list(phrases)
         answers = [_Chosen(torch.from_numpy(self.answers.get(p, np.zeros(0, np.int64)))) for p in phrases]
         return SimpleNamespace(gaussians=lambda: answers)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from langfield.synthetic import (
     FEATURE_DIM,
     LEVELS,
     SYNONYMS,
+    _room_primitives,
     distance_to_surfaces,
     distances_to_objects,
     make_room,
@@ -24,6 +26,7 @@ from langfield.synthetic import (
 )
 
 W, H = 64, 48
+LAYOUT_0_DIGEST = "0d235cc9e5aa1df1"
 
 
 @pytest.fixture(scope="module")
@@ -232,10 +235,31 @@ def test_scale_scales_geometry_and_cameras(scene: Path, tmp_path: Path) -> None:
     np.testing.assert_allclose(big_depth, 2.0 * depth, rtol=1e-4)
 
 
+def _primitives_digest(prims) -> str:
+    h = hashlib.sha256()
+    for p in prims:
+        h.update((np.round(np.asarray(p.mesh.vertices), 5) + 0.0).tobytes())
+        h.update(np.asarray(p.mesh.triangles).astype(np.int64).tobytes())
+        h.update((np.round(np.asarray(p.color), 6) + 0.0).tobytes())
+        h.update("|".join((*p.labels, p.texture)).encode())
+    return h.hexdigest()[:16]
+
+
+def test_layout_0_is_the_built_in_room_of_before_layouts() -> None:
+    # The digest of every primitive (vertices, triangles, colours, labels) of seed 0, taken from the
+    # generator before layouts existed (f2bd2d4): layout 0 must stay that room, figure for figure.
+    prims = _room_primitives(np.random.default_rng([0, 1]), 1.0, layout=0)
+    assert _primitives_digest(prims) == LAYOUT_0_DIGEST
+
+
 def test_layout_0_is_the_built_in_room_at_home() -> None:
     assert [(p.kind, p.size, p.dx, p.dy) for p in room_layout(0)] == [
         (kind, 1.0, 0.0, 0.0) for kind in ("sofa", "table", "lamp", "chair", "shelf")
     ]
+
+
+def test_every_layout_places_three_or_more_groups() -> None:
+    assert min(len(room_layout(k)) for k in range(1, 1201)) >= 3  # 317 once fitted only two
 
 
 @pytest.mark.parametrize("layout", range(1, 13))
