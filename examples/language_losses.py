@@ -23,7 +23,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import fields
 
 import numpy as np
 import open3d as o3d
@@ -96,9 +95,11 @@ def main(argv: list[str]) -> int:
 
     # The autoencoder, refitted as training fitted it (its decoder is compared with the saved one).
     saved = field.meta["config"]
-    keys = ("seed", "autoencoder_iterations", "autoencoder_spread")
+    # A field trained before the spread term existed (no key in its config) was trained without it.
     cfg = TrainConfig(
-        **{f.name: saved[f.name] for f in fields(TrainConfig) if f.name in keys and f.name in saved}
+        seed=saved["seed"],
+        autoencoder_iterations=saved["autoencoder_iterations"],
+        autoencoder_spread=saved.get("autoencoder_spread", 0.0),
     )
     targets = language_targets(scene, cfg, progress=False)
     autoencoder = targets.autoencoder

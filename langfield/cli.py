@@ -372,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="weight of the autoencoder's term that spreads unlike concepts over the latent sphere "
-        "(default 0: the paper's eq. 2 alone)",
+        "(default 0.01; 0: the paper's eq. 2 alone)",
     )
     p.add_argument(
         "--lambda-opacity",

@@ -111,8 +111,11 @@ class TrainConfig:
     # 0.530 from iteration 0, training 10 % shorter (docs/figures.md).
     language_start: float = 0.33
     autoencoder_iterations: int = 300
-    # Weight of the autoencoder's spread term (encoders.autoencoder.spread_loss); 0: eq. 2 alone.
-    autoencoder_spread: float = 0.0
+    # Weight of the autoencoder's spread term (encoders.autoencoder.spread_loss); 0: eq. 2 alone, the
+    # paper's. Eq. 2 packs a room's concepts 8-13 degrees apart on the 3-d sphere, and a rendered latent
+    # 10 degrees off decodes to a neighbour. Rooms of 3 layouts x 2 seeds: novel-view mIoU 0.585 -> 0.631
+    # (5 of 6 higher), 3D recall 0.73 -> 0.81, PSNR unchanged (docs/figures.md, "Language in novel views").
+    autoencoder_spread: float = 0.01
     depth: bool | None = None  # None: when every training view has a depth prior (depths/)
     lad: bool = True  # False: the plain global depth term only (the --no-lad ablation)
     # L_D's normalised terms are scale-invariant: their gradient grows as 1 / std of the render, which
