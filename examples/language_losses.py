@@ -31,7 +31,7 @@ import torch
 from encoders.protocols import LEVELS
 from langfield import LanguageField, TrainConfig, load_scene
 from langfield.aggregate import aggregate_latents, with_latents
-from langfield.evaluate import score_queries, true_features
+from langfield.evaluate import masked_pixels, score_queries, true_features
 from langfield.query import fill_empty, text_encoder_for
 from langfield.trainer import language_targets
 from querying.evaluation import mask_iou, summarize_queries
@@ -90,9 +90,6 @@ def main(argv: list[str]) -> int:
             out = field.render(scene.camera(name))
             renders[name] = (field.decode(out.latents), out.alpha)
 
-    def covered(features):
-        return (features != 0).any(-1).any(0).float()
-
     # The autoencoder, refitted as training fitted it (its decoder is compared with the saved one).
     saved = field.meta["config"]
     # A field trained before the spread term existed (no key in its config) was trained without it.
@@ -117,7 +114,7 @@ def main(argv: list[str]) -> int:
             side = torch.nn.functional.normalize(side - (side * z).sum(-1, keepdim=True) * z, dim=-1)
             turn = np.deg2rad(degrees)
             decoded = autoencoder.decode(z * np.cos(turn) + side * np.sin(turn)) * valid
-        return decoded, covered(features)
+        return decoded, masked_pixels(features).float()
 
     # True per-Gaussian latents: the nearest primitive's labels, their concept vectors (the phrase table
     # holds each label's), autoencoded.
@@ -149,6 +146,10 @@ def main(argv: list[str]) -> int:
             out = aggregated_field.render(scene.camera(name))
             return aggregated_field.decode(out.latents), out.alpha
 
+    def oracle_features(name):
+        truth = true_features(scene, name)
+        return truth, masked_pixels(truth).float()
+
     table_rows = {
         "field": score(lambda n: renders[n]),
         f"aggregated latents, trained geometry ({aggregate_seconds:.1f} s)": score(aggregated_latents),
@@ -161,7 +162,7 @@ def main(argv: list[str]) -> int:
             lambda n: through_autoencoder(n, 5.0)
         ),
         "true features through the autoencoder": score(through_autoencoder),
-        "oracle": score(lambda n: (true_features(scene, n), covered(true_features(scene, n)))),
+        "oracle": score(oracle_features),
     }
     print(f"refitted decoder vs the field's: max weight difference {diff}")
     print("| pipeline | mIoU | mAcc |\n|---|---|---|")

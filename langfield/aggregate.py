@@ -63,17 +63,19 @@ def aggregate_latents(
     weight = torch.zeros(n, LANGUAGE_CHANNELS)
     if n == 0:
         return total.reshape(0, 3, 3), weight.reshape(0, 3, 3)[..., 0]
+    probe = with_latents(field, torch.zeros(n, 3, 3))
+    leaf = probe.splats["lang"]  # the only tensor that asks for a gradient
+    for key in [k for k in probe.splats if k != "lang"]:  # the probe's own dict: the field keeps its own
+        probe.splats[key] = nn.Parameter(probe.splats[key].detach(), requires_grad=False)
     for name, cam in cameras.items():
         mask = valid[name].float()  # [3, H, W]
         target = latents[name] * mask[..., None]  # [3, H, W, 3]
-        ones = mask[..., None].expand(-1, -1, -1, target.shape[-1])
-        for goal, acc in ((target, total), (ones, weight)):
-            probe = with_latents(field, torch.zeros(n, 3, 3))
-            leaf = probe.splats["lang"]
-            frozen = {k: v.detach() for k, v in probe.splats.items() if k != "lang"}
-            probe.splats.update(frozen)
-            out = probe.render(cam, backend=backend, hard_depth=False)
-            (grad,) = torch.autograd.grad((out.latents * goal).sum(), [leaf], allow_unused=True)
+        ones = mask[..., None].expand_as(target)
+        out = probe.render(cam, backend=backend, hard_depth=False)
+        for goal, acc, last in ((target, total, False), (ones, weight, True)):
+            (grad,) = torch.autograd.grad(
+                out.latents, [leaf], grad_outputs=goal, retain_graph=not last, allow_unused=True
+            )
             if grad is not None:  # None: no Gaussian reaches the view
                 acc += grad
     weight = weight.reshape(n, 3, 3)[..., 0]

@@ -188,10 +188,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     check_writable_file(json_path.with_suffix(".md"), "Markdown summary")
     pictures = check_writable_folder(json_path.parent / (json_path.stem + "_renders"), "pictures")
     field, scene = _load_field_and_scene(args.out, args.scene)
-    if args.oracle:
-        from langfield.evaluate import check_oracle
-
-        check_oracle(field, scene, scene.names(args.split))
     report = evaluate(field, scene, split=args.split, save_dir=pictures, oracle=args.oracle)
     md = write_report(report, json_path, pictures)
     psnr_txt = (

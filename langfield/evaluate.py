@@ -88,8 +88,9 @@ def evaluate(
             has_cache = out.latents is not None and scene.feature_paths(name) is not None
             scored = embeddings is not None and out.latents is not None and bool(labels[name])
             decoded = field.decode(out.latents) if has_cache or scored else None  # [3, H, W, 512]
-            if has_cache:
-                cosines.append(feature_cosine(decoded, scene, name))
+            truth = true_features(scene, name) if has_cache else None  # read once per view
+            if truth is not None:
+                cosines.append(feature_cosine(decoded, truth))
             queries, extra = {}, {}
             if scored:
                 phrases, phrase_embeddings, canonical_embeddings = embeddings
@@ -98,11 +99,9 @@ def evaluate(
                 queries = score_queries(maps, phrases, labels[name])
                 if save is not None:
                     write_query_sheet(save, name, out.rgb, maps, phrases, labels[name], queries)
-                if oracle:
-                    features = true_features(scene, name)
-                    true_maps = relevancy(features, phrase_embeddings, canonical_embeddings)
-                    # A perfect field covers exactly the pixels that some mask covers.
-                    true_maps = fill_empty(true_maps, (features != 0).any(-1).any(0).float())
+                if oracle:  # check_oracle made sure every labelled view has its cache
+                    true_maps = relevancy(truth, phrase_embeddings, canonical_embeddings)
+                    true_maps = fill_empty(true_maps, masked_pixels(truth).float())
                     extra["oracle_queries"] = score_queries(true_maps, phrases, labels[name])
                     oracle_records += extra["oracle_queries"].values()
             record = {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target)}
@@ -161,7 +160,8 @@ def true_features(scene: Scene, name: str) -> torch.Tensor:
     cache: each pixel carries its mask's feature; zero where the level has no mask (as a LangSplat
     feature cache leaves such pixels). Pixels without a mask at any level count as empty in the oracle
     (:func:`langfield.query.fill_empty`), as the pixels a field leaves empty do."""
-    cache = _feature_cache(scene, name)
+    cam = scene.camera(name)
+    cache = read_feature_cache(*scene.feature_paths(name), expected_hw=(cam.height, cam.width))
     features = torch.from_numpy(cache.features).float()
     out = torch.zeros(len(LEVELS), *cache.segments[0].shape, features.shape[-1])
     for level in range(len(LEVELS)):
@@ -171,9 +171,10 @@ def true_features(scene: Scene, name: str) -> torch.Tensor:
     return out
 
 
-def _feature_cache(scene: Scene, name: str):
-    cam = scene.camera(name)
-    return read_feature_cache(*scene.feature_paths(name), expected_hw=(cam.height, cam.width))
+def masked_pixels(truth: torch.Tensor) -> torch.Tensor:
+    """[H, W] bool: the pixels of :func:`true_features` with a mask at some level, those a perfect
+    field covers (cache rows are unit vectors, so a masked pixel is never zero)."""
+    return (truth != 0).any(-1).any(0)
 
 
 def _oracle_summary(
@@ -278,26 +279,24 @@ def write_query_sheet(
     return path
 
 
-def feature_cosine(decoded: torch.Tensor, scene: Scene, name: str) -> list[float]:
+def feature_cosine(decoded: torch.Tensor, truth: torch.Tensor) -> list[float]:
     """Per level, the mean cosine between decoded rendered latents and the view's mask features.
 
     Args:
-        decoded: [3, H, W, 512] decoded rendered latents of view ``name`` (``field.decode(latents)``).
+        decoded: [3, H, W, 512] decoded rendered latents of a view (``field.decode(latents)``).
+        truth: [3, H, W, 512] the view's mask features (:func:`true_features`), zero without a mask.
 
     Returns:
         Three numbers (subpart, part, whole), averaged over the pixels that have a mask at that level;
         NaN for a level without masks.
     """
-    cache = _feature_cache(scene, name)
-    features = torch.from_numpy(cache.features)
     result = []
     for level in range(len(LEVELS)):
-        seg = torch.from_numpy(cache.segments[level].astype(np.int64))
-        valid = seg >= 0
+        valid = (truth[level] != 0).any(-1)
         if not valid.any():
             result.append(float("nan"))
             continue
-        cos = (decoded[level] * features[seg.clamp_min(0)]).sum(-1)
+        cos = (decoded[level] * truth[level]).sum(-1)
         result.append(float(cos[valid].mean()))
     return result
 

@@ -189,27 +189,24 @@ def distance_to_surfaces(
         True
     """
     gt = Path(scene_dir) / "gt"
-    pts = np.asarray(points, dtype=np.float32)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"distance_to_surfaces: points must have shape [N, 3], got {pts.shape}")
+    pts = _check_points(points, "distance_to_surfaces")
+    if level is not None and level not in LEVELS:
+        raise ValueError(f"distance_to_surfaces: level must be one of {LEVELS}, got {level!r}")
     if not (gt / "mesh.ply").exists():
         raise FileNotFoundError(f"{gt / 'mesh.ply'}: missing; is {scene_dir} a make_room scene?")
     mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
+    keep = None
     if label is not None:
         records = json.loads((gt / "primitives.json").read_text())
-        if level is not None and level not in LEVELS:
-            raise ValueError(f"distance_to_surfaces: level must be one of {LEVELS}, got {level!r}")
-        keep = [
+        ranges = [
             np.arange(*r["triangles"])
             for r in records
             if (r["labels"][level] == label if level else label in r["labels"].values())
         ]
-        if not keep:
+        if not ranges:
             raise ValueError(f"distance_to_surfaces: no primitive of {gt / 'primitives.json'} is {label!r}")
-        mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[np.concatenate(keep)])
-    raycaster = o3d.t.geometry.RaycastingScene()
-    raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-    return raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float32)
+        keep = np.concatenate(ranges)
+    return _distances(mesh, keep, pts)
 
 
 def distances_to_objects(
@@ -224,21 +221,36 @@ def distances_to_objects(
     gt = Path(scene_dir) / "gt"
     if level not in LEVELS:
         raise ValueError(f"distances_to_objects: level must be one of {LEVELS}, got {level!r}")
-    pts = np.asarray(points, dtype=np.float32)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"distances_to_objects: points must have shape [N, 3], got {pts.shape}")
+    pts = _check_points(points, "distances_to_objects")
     records = json.loads((gt / "primitives.json").read_text())
     mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
-    triangles = np.asarray(mesh.triangles)
     labels = sorted({r["labels"][level] for r in records})
-    rows = []
-    for label in labels:
-        keep = np.concatenate([np.arange(*r["triangles"]) for r in records if r["labels"][level] == label])
-        part = o3d.geometry.TriangleMesh(mesh.vertices, o3d.utility.Vector3iVector(triangles[keep]))
-        raycaster = o3d.t.geometry.RaycastingScene()
-        raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(part))
-        rows.append(raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float32))
+    rows = [
+        _distances(
+            mesh,
+            np.concatenate([np.arange(*r["triangles"]) for r in records if r["labels"][level] == k]),
+            pts,
+        )
+        for k in labels
+    ]
     return labels, np.stack(rows) if rows else np.zeros((0, len(pts)), np.float32)
+
+
+def _check_points(points: np.ndarray, who: str) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"{who}: points must have shape [N, 3], got {pts.shape}")
+    return pts
+
+
+def _distances(mesh: o3d.geometry.TriangleMesh, triangles: np.ndarray | None, pts: np.ndarray) -> np.ndarray:
+    """[N] float32 distance from ``pts`` to the ``triangles`` (indices; None: all) of ``mesh``."""
+    if triangles is not None:
+        chosen = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[triangles])
+        mesh = o3d.geometry.TriangleMesh(mesh.vertices, chosen)
+    raycaster = o3d.t.geometry.RaycastingScene()
+    raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float32)
 
 
 # ----------------------------------------------------------------------------------------- geometry

@@ -50,6 +50,7 @@ def test_the_gradient_pass_equals_the_weighted_sums_of_forward_renders(field, sc
     names = scene.names("train")
     cameras = {n: scene.camera(n) for n in names}
     latents, weight = aggregate_latents(field, cameras, targets.latents, targets.valid)
+    assert all(p.requires_grad for p in field.splats.values())  # the probe froze its own copies only
     total = torch.zeros(field.num_gaussians, 3, 3)
     expected_weight = torch.zeros(field.num_gaussians, 3)
     for name in names:
