@@ -4,7 +4,8 @@ ground truth on a synthetic scene (one that make_room wrote: it knows its object
 python examples/language_losses.py FIELD_DIR [SCENE] [--json OUT.json] [--split train]
 
 Rows, from the field as trained to the query pipeline's ceiling:
-- field: the field's rendered latents, decoded (what `langfield eval` scores);
+- field: the field's rendered latents, decoded (what `langfield eval` scores); then the same latents
+  decoded as they are (the paper's reading) and read as their nearest codebook entries;
 - aggregated latents, trained geometry: every Gaussian's latents the rendering-weighted mean of the
   training views' mask latents (langfield.aggregate, no training), rendered with the trained Gaussians;
 - field, best level: the same relevancy maps, each query given the level whose mask scores best
@@ -84,11 +85,12 @@ def main(argv: list[str]) -> int:
                 records.append({"iou": max(ious), "hit": True})
         return summarize_queries(records)
 
-    renders = {}
+    rendered = {}
     with torch.no_grad():
         for name in names:
             out = field.render(scene.camera(name))
-            renders[name] = (field.decode(out.latents), out.alpha)
+            rendered[name] = (out.latents, out.alpha)
+    renders = {n: (field.decode_levels(z), alpha) for n, (z, alpha) in rendered.items()}
 
     # The autoencoder, refitted as training fitted it (its decoder is compared with the saved one).
     saved = field.meta["config"]
@@ -99,6 +101,20 @@ def main(argv: list[str]) -> int:
         autoencoder_spread=saved.get("autoencoder_spread", 0.0),
     )
     targets = language_targets(scene, cfg, progress=False)
+    # Both readings of the same rendered latents; the codebook is the training masks' latents (the
+    # field's own, or the refitted autoencoder's for a field trained without one).
+    codebook = field.codebook or [torch.nn.functional.normalize(p, dim=-1) for p in targets.prototypes]
+    readers = {}
+    for decode in ("continuous", "codebook"):
+        reader = LanguageField(
+            field.splats,
+            field.color,
+            field.meta,
+            field.language,
+            field.decoder,
+            codebook if decode == "codebook" else None,
+        )
+        readers[decode] = {n: (reader.decode_levels(z), alpha) for n, (z, alpha) in rendered.items()}
     autoencoder = targets.autoencoder
     refit, own = autoencoder.decoder.state_dict(), field.decoder.decoder.state_dict()
     diff = max(float((refit[k] - own[k]).abs().max()) for k in own)
@@ -131,7 +147,7 @@ def main(argv: list[str]) -> int:
     def true_latents(name):
         with torch.no_grad():
             out = true_field.render(scene.camera(name))
-            return true_field.decode(out.latents), out.alpha
+            return true_field.decode_levels(out.latents), out.alpha
 
     train_names = scene.names("train")
     t0 = time.perf_counter()
@@ -144,7 +160,7 @@ def main(argv: list[str]) -> int:
     def aggregated_latents(name):
         with torch.no_grad():
             out = aggregated_field.render(scene.camera(name))
-            return aggregated_field.decode(out.latents), out.alpha
+            return aggregated_field.decode_levels(out.latents), out.alpha
 
     def oracle_features(name):
         truth = true_features(scene, name)
@@ -152,6 +168,10 @@ def main(argv: list[str]) -> int:
 
     table_rows = {
         "field": score(lambda n: renders[n]),
+        "field, rendered latents decoded as they are (continuous, the paper)": score(
+            lambda n: readers["continuous"][n]
+        ),
+        "field, rendered latents read through the codebook": score(lambda n: readers["codebook"][n]),
         f"aggregated latents, trained geometry ({aggregate_seconds:.1f} s)": score(aggregated_latents),
         "field, best level": score(lambda n: renders[n], best_level=True),
         "true latents, trained geometry": score(true_latents),

@@ -26,14 +26,14 @@ __all__ = ["aggregate_latents", "with_latents"]
 
 
 def with_latents(field: LanguageField, latents: Tensor) -> LanguageField:
-    """A field sharing ``field``'s Gaussians, colour field and decoder whose language is the
+    """A field sharing ``field``'s Gaussians, colour field, decoder and codebook whose language is the
     per-Gaussian ``latents`` [N, 3, 3] (the hash grid, if any, left out)."""
     splats = nn.ParameterDict(dict(field.splats))
     splats["lang"] = nn.Parameter(latents.reshape(len(latents), LANGUAGE_CHANNELS).detach().clone())
     meta = dict(field.meta)
     if meta.get("language"):  # field.json then says what the latents are
         meta["language"] = {**meta["language"], "features": "per-gaussian"}
-    return LanguageField(splats, field.color, meta, None, field.decoder)
+    return LanguageField(splats, field.color, meta, None, field.decoder, field.codebook)
 
 
 def aggregate_latents(

@@ -98,7 +98,7 @@ def train_config(args: argparse.Namespace):
     )
     # Flags left unset keep TrainConfig's defaults.
     given = {name: getattr(args, name) for name in SPARSE_VIEW_FLAGS if getattr(args, name) is not None}
-    for name in ("lambda_opacity", "language_start", "autoencoder_spread"):
+    for name in ("lambda_opacity", "language_start", "autoencoder_spread", "language_decode"):
         if getattr(args, name) is not None:
             given[name] = getattr(args, name)
     return replace(cfg, **given)
@@ -206,7 +206,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         query_txt += f" (oracle on the true features: mIoU {oracle['mIoU']:.3f}{ratio})"
     selection = report.get("selection_3d")
     if selection and selection["precision"] is not None:
-        query_txt += f", 3D selection precision {selection['precision']:.3f} recall {selection['recall']:.3f}"
+        query_txt += (
+            f", 3D selection precision {selection['precision']:.3f} "
+            f"(on surfaces {selection['surface_precision']:.3f}) recall {selection['recall']:.3f}"
+        )
     print(
         f"{len(report['views'])} {args.split} views: {psnr_txt}{query_txt}{_cosine_text(report)}; "
         f"{report['num_gaussians']} Gaussians, "
@@ -369,6 +372,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="weight of the autoencoder's term that spreads unlike concepts over the latent sphere "
         "(default 0.01; 0: the paper's eq. 2 alone)",
+    )
+    p.add_argument(
+        "--language-decode",
+        choices=["codebook", "continuous"],
+        default=None,
+        help="read a rendered latent as the nearest training-mask latent of its level (codebook, the "
+        "default) or decode it as it is (continuous, the paper)",
     )
     p.add_argument(
         "--lambda-opacity",

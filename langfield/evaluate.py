@@ -3,7 +3,8 @@
 The report's top-level keys are fixed by FORMAT.md ("Evaluation report"). Text queries are scored as
 LangSplat scores them (``eval/evaluate_iou_loc.py``): for every test view and every phrase of its
 ``segmentations/`` folder, the IoU of the query's mask with the ground truth and the localization hit,
-from relevancy maps of exactly decoded rendered latents (no lattice), pixels the field leaves empty
+from relevancy maps of exactly decoded rendered latents (``field.decode_levels``: through the field's
+codebook when it has one; no lattice), pixels the field leaves empty
 taken out as queries do (:func:`langfield.query.fill_empty`); mIoU and mAcc are their means over all
 (view, phrase) pairs (:func:`querying.evaluation.summarize_queries`). Metrics the scene or
 the field cannot provide (no labels, no feature cache, no language) are ``null``.
@@ -87,7 +88,7 @@ def evaluate(
             target = torch.from_numpy(scene.image(name))
             has_cache = out.latents is not None and scene.feature_paths(name) is not None
             scored = embeddings is not None and out.latents is not None and bool(labels[name])
-            decoded = field.decode(out.latents) if has_cache or scored else None  # [3, H, W, 512]
+            decoded = field.decode_levels(out.latents) if has_cache or scored else None  # [3, H, W, 512]
             truth = true_features(scene, name) if has_cache else None  # read once per view
             if truth is not None:
                 cosines.append(feature_cosine(decoded, truth))
@@ -283,7 +284,7 @@ def feature_cosine(decoded: torch.Tensor, truth: torch.Tensor) -> list[float]:
     """Per level, the mean cosine between decoded rendered latents and the view's mask features.
 
     Args:
-        decoded: [3, H, W, 512] decoded rendered latents of a view (``field.decode(latents)``).
+        decoded: [3, H, W, 512] decoded rendered latents of a view (``field.decode_levels(latents)``).
         truth: [3, H, W, 512] the view's mask features (:func:`true_features`), zero without a mask.
 
     Returns:
@@ -384,13 +385,16 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
         lines += [
             f"3D selection (`field.query(o).gaussians()` against each object's surface, within "
             f"{selection['tolerance']:.3f}): precision {fmt(selection['precision'])}, recall "
-            f"{fmt(selection['recall'])}.",
+            f"{fmt(selection['recall'])}; precision among the selected Gaussians that lie on a surface "
+            f"{fmt(selection['surface_precision'])} ({fmt(selection['off_surface'])} of all Gaussians "
+            "lie on none).",
             "",
-            "| object | precision | recall | selected | the object's Gaussians |",
-            "|---|---|---|---|---|",
+            "| object | precision | recall | surface precision | selected | the object's Gaussians |",
+            "|---|---|---|---|---|---|",
         ]
         lines += [
-            f"| {name} | {fmt(o['precision'])} | {fmt(o['recall'])} | {o['selected']} | {o['gaussians']} |"
+            f"| {name} | {fmt(o['precision'])} | {fmt(o['recall'])} | {fmt(o['surface_precision'])} "
+            f"| {o['selected']} | {o['gaussians']} |"
             for name, o in selection["objects"].items()
         ]
         lines.append("")

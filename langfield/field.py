@@ -100,6 +100,9 @@ class LanguageField(nn.Module):
         meta: what field.json records (config, bounds, training views, background, timings, language).
         language: the hash-grid language heads, if the field has hash-grid language features.
         decoder: the scene's autoencoder decoder (latent -> 512-d CLIP space), if the field has language.
+        codebook: per level, the [P_l, 3] unit latents of the training views' masks at that level; with
+            one, a rendered latent is read as its nearest entry (:meth:`decode_levels`). None: decoded
+            as it is (the paper's reading).
 
     Attributes:
         folder: the folder the field was loaded from, else None.
@@ -112,6 +115,7 @@ class LanguageField(nn.Module):
         meta: dict[str, Any],
         language: LanguageHeads | None = None,
         decoder: LanguageDecoder | None = None,
+        codebook: Sequence[Tensor] | None = None,
     ) -> None:
         super().__init__()
         self.splats = splats
@@ -119,6 +123,13 @@ class LanguageField(nn.Module):
         self.meta = meta
         self.language = language
         self.decoder = decoder
+        self.codebook = (
+            None if codebook is None else [check_codebook_level(c, i) for i, c in enumerate(codebook)]
+        )
+        if self.codebook is not None and len(self.codebook) != N_LEVELS:
+            raise ValueError(
+                f"codebook: need one entry tensor per level ({N_LEVELS}), got {len(self.codebook)}"
+            )
         self.folder: Path | None = None
         # The language grid may reuse the colour grid's cell look-up when both share the layout.
         self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
@@ -158,6 +169,48 @@ class LanguageField(nn.Module):
         if self.decoder is None:
             raise ValueError("this field has no language decoder (it was trained without language features)")
         return self.decoder.decode(nn.functional.normalize(latents, dim=-1, eps=LATENT_NORM_EPS))
+
+    def codebook_indices(self, latents: Tensor) -> Tensor:
+        """``[3, ...]`` long: each latent's nearest codebook entry at its level (largest cosine); -1 for a
+        zero latent, which has no direction, and at a level without entries.
+
+        Args:
+            latents: ``[3, ..., 3]`` latents of the three levels (a render's ``latents``, or the
+                Gaussians' own latents moved level-first).
+        """
+        if self.codebook is None:
+            raise ValueError("this field has no codebook (it was trained with --language-decode continuous)")
+        _check_levels(latents)
+        index = torch.full(latents.shape[:-1], -1, dtype=torch.long)
+        nonzero = latents.norm(dim=-1) > LATENT_NORM_EPS
+        for level, entries in enumerate(self.codebook):
+            if entries.shape[0]:
+                # The entries are unit length, so the largest dot product is the largest cosine.
+                nearest = (latents[level].to(entries.dtype) @ entries.T).argmax(dim=-1)
+                index[level] = torch.where(nonzero[level], nearest, -1)
+        return index
+
+    def codebook_features(self, level: int) -> Tensor:
+        """``[P_l + 1, 512]``: the decoded codebook entries of ``level``, then the decoded zero latent
+        (row -1, what :meth:`codebook_indices` gives a zero latent)."""
+        entries = self.codebook[level]
+        return self.decode(torch.cat([entries, entries.new_zeros(1, LATENT_DIM)]))
+
+    def decode_levels(self, latents: Tensor) -> Tensor:
+        """``[3, ..., 3]`` latents of the three levels -> ``[3, ..., 512]`` CLIP features.
+
+        With a codebook each latent is replaced by its nearest entry (:meth:`codebook_indices`) before
+        it is decoded: the scene's concepts are the training masks' features, and a rendered latent a
+        few degrees off decodes to a neighbouring concept on the 3-d sphere, where they lie 6-13
+        degrees apart (docs/figures.md, "Language in novel views"); the nearest entry is still the
+        right one. Without a codebook, :meth:`decode`.
+        """
+        if self.codebook is None:
+            return self.decode(latents)
+        index = self.codebook_indices(latents)
+        with torch.no_grad():
+            rows = [self.codebook_features(level) for level in range(N_LEVELS)]
+        return torch.stack([rows[level][index[level]] for level in range(N_LEVELS)])
 
     @property
     def num_gaussians(self) -> int:
@@ -280,6 +333,8 @@ class LanguageField(nn.Module):
             )
         if self.decoder is not None:
             tensors.update({f"decoder.{k}": v for k, v in decoder_state(self.decoder).items()})
+        for level, entries in enumerate(self.codebook or []):
+            tensors[f"codebook.{level}"] = entries.contiguous()
         return tensors
 
     def save(self, out: str | Path, *, overwrite: bool = False) -> Path:
@@ -334,6 +389,9 @@ class LanguageField(nn.Module):
             self.meta, format_version=FORMAT_VERSION, num_gaussians=self.num_gaussians, tensors_sha256=digest
         )
         meta.pop("text_table_sha256", None)
+        if meta.get("language"):  # what the saved tensors hold, whatever the meta said before
+            codebook = None if self.codebook is None else [int(c.shape[0]) for c in self.codebook]
+            meta["language"] = dict(meta["language"], codebook=codebook)
         table = self._text_table()
         if table is not None:
             shutil.copyfile(table, folder / TEXT_TABLE_FILE)
@@ -402,7 +460,10 @@ class LanguageField(nn.Module):
                 decoder = LanguageDecoder(autoencoder_config(spec))
             except (TypeError, ValueError) as err:
                 raise FieldFileError(f"{meta_path}: language.autoencoder: {err}") from err
-        check_tensors(tensors, _expected_shapes(tensors, color, language, decoder), tensors_path, meta_path)
+        sizes = (spec or {}).get("codebook")
+        expected = _expected_shapes(tensors, color, language, decoder)
+        expected.update({f"codebook.{level}": (size, LATENT_DIM) for level, size in enumerate(sizes or [])})
+        check_tensors(tensors, expected, tensors_path, meta_path)
         splats = nn.ParameterDict(
             {k.split(".", 1)[1]: nn.Parameter(v) for k, v in tensors.items() if k.startswith("splats.")}
         )
@@ -411,7 +472,11 @@ class LanguageField(nn.Module):
             language.load_state_dict(_prefixed(tensors, "language"))
         if decoder is not None:
             decoder = load_decoder(_prefixed(tensors, "decoder"), decoder.cfg)
-        field = cls(splats, color, meta, language, decoder)
+        codebook = None if sizes is None else [tensors[f"codebook.{level}"] for level in range(len(sizes))]
+        try:
+            field = cls(splats, color, meta, language, decoder, codebook)
+        except ValueError as err:
+            raise FieldFileError(f"{tensors_path}: {err}") from err
         field.folder = out
         # A loaded field is for rendering and querying: its renders carry no autograd graph (they are
         # plain tensors, `.numpy()` works). `field.requires_grad_(True)` makes it trainable again.
@@ -420,6 +485,23 @@ class LanguageField(nn.Module):
     def field_bytes(self) -> int:
         """Bytes of all tensors of the field."""
         return sum(t.numel() * t.element_size() for t in self.state_tensors().values())
+
+
+def check_codebook_level(entries: Tensor, level: int) -> Tensor:
+    """One level's codebook as float32 ``[P, 3]`` unit latents (P may be 0: a level without masks)."""
+    entries = torch.as_tensor(entries).detach().to(torch.float32)
+    if entries.dim() != 2 or entries.shape[1] != LATENT_DIM:
+        raise ValueError(f"codebook[{level}]: expected [P, {LATENT_DIM}] latents, got {tuple(entries.shape)}")
+    if not bool(torch.isfinite(entries).all()) or bool((entries.norm(dim=-1) < 0.5).any()):
+        raise ValueError(f"codebook[{level}]: entries must be finite unit latents (the encoder's output)")
+    return nn.functional.normalize(entries, dim=-1)
+
+
+def _check_levels(latents: Tensor) -> None:
+    if latents.dim() < 2 or latents.shape[0] != N_LEVELS or latents.shape[-1] != LATENT_DIM:
+        raise ValueError(
+            f"expected latents [{N_LEVELS}, ..., {LATENT_DIM}] (level first), got {tuple(latents.shape)}"
+        )
 
 
 def check_output_folder(out: Path, overwrite: bool) -> None:

@@ -152,6 +152,11 @@ def check_field_meta(meta: Any, path: Path, format_version: int) -> dict[str, An
         if language["features"] == "hashgrid":
             c.grid(meta, "language.grid")
             c.whole(meta, "language.hidden", 1)
+        sizes = language.get("codebook")
+        if sizes is not None and not (
+            isinstance(sizes, list) and len(sizes) == 3 and all(_is_whole(v, 0) for v in sizes)
+        ):
+            c.fail("language.codebook", "null or the entry counts of the three levels ([P0, P1, P2])", sizes)
     return meta
 
 

@@ -131,12 +131,16 @@ def selection_scores(
     ``tolerance`` x the bounds' diagonal (OpenGaussian and Dr.Splat score 3D queries against the
     objects' geometry the same way). Precision: the fraction of the selected Gaussians that are the
     object's (0 for an empty selection); recall: the fraction of the object's Gaussians selected.
+    Surface precision: the same fraction of the selected Gaussians that lie on some surface, so that it
+    scores the language alone; the Gaussians farther than the tolerance from every surface (a matter of
+    geometry: no choice of latents puts them on an object) are counted apart, ``off_surface``.
     ``text_encoder`` embeds the object names (default the field's own; see ``LanguageField.query``).
 
     Returns:
-        {"precision", "recall" (means over the objects that have Gaussians), "tolerance" (scene units),
-        "objects": {name: {"precision", "recall", "selected", "gaussians"}}}; None when the scene has no
-        ``gt/primitives.json`` or the field no language.
+        {"precision", "recall", "surface_precision" (means over the objects that have Gaussians),
+        "off_surface" (the fraction of all Gaussians on no surface), "tolerance" (scene units),
+        "objects": {name: {"precision", "recall", "surface_precision", "selected", "gaussians"}}};
+        None when the scene has no ``gt/primitives.json`` or the field no language.
     """
     gt = Path(scene.root) / "gt"
     if not (gt / "primitives.json").is_file() or field.decoder is None or not field.has_language:
@@ -155,16 +159,24 @@ def selection_scores(
         chosen[sel.indices.numpy()] = True
         mine = owner == k
         hits = int((chosen & mine).sum())
+        on_surface = int((chosen & (owner >= 0)).sum())
         per_object[name] = {
             "precision": hits / int(chosen.sum()) if chosen.any() else 0.0,
             "recall": hits / int(mine.sum()) if mine.any() else None,
+            "surface_precision": hits / on_surface if on_surface else 0.0,
             "selected": int(chosen.sum()),
             "gaussians": int(mine.sum()),
         }
     scored = [v for v in per_object.values() if v["recall"] is not None]
+
+    def mean(key: str) -> float | None:
+        return float(np.mean([v[key] for v in scored])) if scored else None
+
     return {
-        "precision": float(np.mean([v["precision"] for v in scored])) if scored else None,
-        "recall": float(np.mean([v["recall"] for v in scored])) if scored else None,
+        "precision": mean("precision"),
+        "recall": mean("recall"),
+        "surface_precision": mean("surface_precision"),
+        "off_surface": float((owner < 0).mean()) if len(means) else 0.0,
         "tolerance": tol,
         "objects": per_object,
     }

@@ -2,14 +2,20 @@
 
 ``field.query("sofa")`` embeds the phrase (and the canonical phrases ``object``, ``things``, ``stuff``,
 ``texture``) once with the field's text encoder and returns a :class:`Query`, evaluated lazily per
-camera. Per pixel, each level's rendered latent is decoded to CLIP space and scored by LERF's relevancy
-(:func:`querying.relevancy.relevancy`); masks follow LangSplat's evaluation
-(:func:`querying.relevancy.relevancy_mask`). A 3D selection scores every Gaussian's own latents the same
-way, so an object can be exported as a PLY or rendered alone.
+camera. Per pixel, each level's rendered latent is decoded to CLIP space (through the field's codebook
+when it has one) and scored by LERF's relevancy (:func:`querying.relevancy.relevancy`); masks follow
+LangSplat's evaluation (:func:`querying.relevancy.relevancy_mask`). A 3D selection scores every
+Gaussian's own latents the same way, so an object can be exported as a PLY or rendered alone.
 
-Speed. Decoding a 160x120 view exactly (3 x 19,200 latents through the 3-16-...-512 decoder, about
-240k multiply-adds each, 28 GFLOP) takes over half a second on two cores. A query instead looks the
-pixels' latents up in a lattice over the latent cube ``[-LATTICE_RADIUS, LATTICE_RADIUS]^3``:
+Reading a latent. A field trained with a codebook (the default, ``--language-decode codebook``)
+reads each rendered latent as the nearest of its level's training-mask latents
+(:meth:`langfield.field.LanguageField.decode_levels`): a query decodes those few dozen entries once,
+scores them, and looks each pixel's relevancy up by the index of its nearest entry, which is exact.
+
+A field read continuously (``--language-decode continuous``, the paper's reading) decodes every latent.
+Decoding a 160x120 view exactly (3 x 19,200 latents through the 3-16-...-512 decoder, about 240k
+multiply-adds each, 28 GFLOP) takes over half a second on two cores. A query instead looks the pixels'
+latents up in a lattice over the latent cube ``[-LATTICE_RADIUS, LATTICE_RADIUS]^3``:
 
 - once per field (cached with its decoder), the lattice points are decoded up to the decoder's last
   hidden layer; their last-layer outputs ``u`` are kept as the hidden activations and ``|u|^2``;
@@ -319,6 +325,7 @@ class _Shared:
         self.channels: Tensor | None = None
         self.last_render: tuple[Camera, Tensor, Tensor] | None = None
         self.selections: list[Selection] | None = None
+        self.code_tables: list[Tensor] | None = None
 
     @property
     def n_phrases(self) -> int:
@@ -373,8 +380,26 @@ class _Shared:
         self.last_render = (camera, rendered, out.alpha)
         return rendered, out.alpha
 
+    def codebook_tables(self) -> list[Tensor]:
+        """Per level, ``[Q, P_l + 1]`` relevancy of the decoded codebook entries, then of the zero latent
+        (:meth:`LanguageField.codebook_features`); computed once per query."""
+        if self.code_tables is None:
+            q = self.n_phrases
+            with torch.no_grad():
+                self.code_tables = [
+                    relevancy(self.field.codebook_features(level), self.embeddings[:q], self.embeddings[q:])
+                    for level in range(N_LEVELS)
+                ]
+        return self.code_tables
+
     def exact_relevancy(self, latents: Tensor) -> Tensor:
-        """``[..., 3]`` latents -> ``[Q, ...]`` relevancy, every latent decoded (in chunks)."""
+        """``[3, ..., 3]`` latents (level first) -> ``[Q, 3, ...]`` relevancy of the decoded latents: with
+        a codebook each latent's nearest entry, whose relevancy is looked up (the same values as
+        decoding it), else every latent decoded (in chunks)."""
+        if self.field.codebook is not None:
+            index = self.field.codebook_indices(latents)
+            tables = self.codebook_tables()
+            return torch.stack([tables[level][:, index[level]] for level in range(N_LEVELS)], dim=1)
         flat = latents.reshape(-1, latents.shape[-1])
         q = self.n_phrases
         out = torch.empty(q, flat.shape[0])
@@ -387,7 +412,10 @@ class _Shared:
         return out.reshape(q, *latents.shape[:-1])
 
     def lattice_relevancy(self, latents: Tensor) -> Tensor:
-        """``[L, H, W, 3]`` latents -> ``[Q, L, H, W]`` relevancy by the lattice (module docstring)."""
+        """``[L, H, W, 3]`` latents -> ``[Q, L, H, W]`` relevancy by the lattice (module docstring); a
+        field with a codebook needs no lattice: its look-up is exact and as fast."""
+        if self.field.codebook is not None:
+            return self.exact_relevancy(latents)
         lattice, channels = self.lattice_channels()
         with torch.no_grad():
             latents = F.normalize(latents, dim=-1, eps=LATENT_NORM_EPS)  # as field.decode reads them
@@ -484,8 +512,8 @@ class Query:
         cam = self._shared.camera(camera)
         if self._last is not None and self._last[0] is cam and self._last[1] == exact:
             return self._last[2]
-        if not exact:  # built once, on every thread: matrix products worth parallelising
-            self._shared.lattice_channels()
+        if not exact and self._shared.field.codebook is None:
+            self._shared.lattice_channels()  # built once, on every thread: products worth parallelising
         with _one_thread(not exact), torch.no_grad():
             latents, alpha = self._shared.render(cam)
             maps = self.relevancy_maps(latents, exact)
@@ -516,7 +544,8 @@ class Query:
     # -------------------------------------------------------- 3D
 
     def gaussians(self) -> Selection | list[Selection]:
-        """The Gaussians that match: each Gaussian's three latents decoded exactly and scored.
+        """The Gaussians that match: each Gaussian's three latents decoded exactly (through the field's
+        codebook when it has one) and scored.
 
         As the 2D mask: the level with the highest relevancy is chosen, the relevancy at that level is
         min-max stretched over the Gaussians (:func:`querying.relevancy.normalize_map`) and thresholded
@@ -530,7 +559,7 @@ class Query:
         if shared.selections is None:
             with torch.no_grad():
                 latents = shared.field.gaussian_latents()  # [N, 3, 3]
-                rel = shared.exact_relevancy(latents).transpose(1, 2)  # [Q, 3, N]
+                rel = shared.exact_relevancy(latents.transpose(0, 1))  # [Q, 3, N]
                 n = rel.shape[-1]
                 if n == 0:
                     level = torch.zeros(rel.shape[0], dtype=torch.long)
@@ -564,7 +593,9 @@ class Query:
         splats = nn.ParameterDict(
             {k: nn.Parameter(v.detach()[idx], requires_grad=False) for k, v in field.splats.items()}
         )
-        return LanguageField(splats, field.color, dict(field.meta), field.language, field.decoder)
+        return LanguageField(
+            splats, field.color, dict(field.meta), field.language, field.decoder, field.codebook
+        )
 
     def render(self, camera: CameraKey) -> Render:
         """Renders the selected Gaussians alone (:meth:`subfield`) from ``camera``.

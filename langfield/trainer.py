@@ -116,6 +116,11 @@ class TrainConfig:
     # 10 degrees off decodes to a neighbour. Rooms of 3 layouts x 2 seeds: novel-view mIoU 0.585 -> 0.631
     # (5 of 6 higher), 3D recall 0.73 -> 0.81, PSNR unchanged (docs/figures.md, "Language in novel views").
     autoencoder_spread: float = 0.01
+    # How a rendered latent is read: "codebook" as the nearest of the training masks' latents at its
+    # level (LanguageField.decode_levels), "continuous" decoded as it is (the paper). Rendered latents
+    # land ~12 degrees from their targets, about the spacing of a room's concepts on the 3-d sphere.
+    # Rooms of 3 layouts x 3 seeds: docs/figures.md, "Language in novel views".
+    language_decode: str = "codebook"
     depth: bool | None = None  # None: when every training view has a depth prior (depths/)
     lad: bool = True  # False: the plain global depth term only (the --no-lad ablation)
     # L_D's normalised terms are scale-invariant: their gradient grows as 1 / std of the render, which
@@ -193,6 +198,8 @@ class TrainConfig:
 
 
 # The `langfield train` flag of each setting that has one, named in the messages of check_config.
+LANGUAGE_DECODES = ("codebook", "continuous")  # TrainConfig.language_decode
+
 CONFIG_FLAGS = {
     "iterations": "--iterations",
     "seed": "--seed",
@@ -204,6 +211,7 @@ CONFIG_FLAGS = {
     "language_grid_scale": "--language-grid-scale",
     "language_start": "--language-start",
     "autoencoder_spread": "--autoencoder-spread",
+    "language_decode": "--language-decode",
     "lambda_opacity": "--lambda-opacity",
     "drop_gamma": "--drop-gamma",
     "lambda_virtual": "--lambda-virtual",
@@ -304,6 +312,8 @@ def check_config(cfg: TrainConfig) -> None:
     number("half_resolution_until", 0.0, 1.0)
     number("language_start", 0.0, 1.0, open_low=False)
     number("autoencoder_spread", 0.0, open_low=False)
+    if cfg.language_decode not in LANGUAGE_DECODES:
+        fail("language_decode", "'codebook' or 'continuous'")
     number("opacity_decay", 0.0, 1.0, open_low=True)
     number("lambda_empty", 0.0)
     number("lambda_anisotropy", 0.0)
@@ -593,7 +603,7 @@ def build_field(
         hidden=cfg.color_hidden,
         n_freqs=cfg.color_freqs,
     )
-    language = decoder = None
+    language = decoder = codebook = None
     language_meta = None
     if targets is not None:
         if cfg.language_features == "per-gaussian":
@@ -615,6 +625,8 @@ def build_field(
                 f"language_features must be 'hashgrid' or 'per-gaussian', got {cfg.language_features!r}"
             )
         decoder = load_decoder(decoder_state(targets.autoencoder), targets.config).requires_grad_(False)
+        if cfg.language_decode == "codebook":
+            codebook = [torch.nn.functional.normalize(p, dim=-1) for p in targets.prototypes]
         language_meta = {
             "features": cfg.language_features,
             "hidden": cfg.language_hidden,
@@ -622,6 +634,7 @@ def build_field(
             "levels": ["subpart", "part", "whole"][:N_LEVELS],
             "autoencoder": asdict(targets.config),
             "autoencoder_stats": targets.stats,
+            "codebook": None if codebook is None else [int(c.shape[0]) for c in codebook],
         }
     background = None if scene.background is None else [float(v) for v in scene.background]
     meta: dict[str, Any] = {
@@ -641,7 +654,7 @@ def build_field(
     # Text-encoder reference for queries (langfield.query): the scene's phrase table, if it has one.
     table = scene.text_embeddings_path
     meta["text_encoder"] = None if table is None else {"kind": "table", "path": str(Path(table).resolve())}
-    return LanguageField(splats, color, meta, language, decoder)
+    return LanguageField(splats, color, meta, language, decoder, codebook)
 
 
 def make_optimizers(

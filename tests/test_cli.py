@@ -180,6 +180,15 @@ def test_train_lambda_opacity_flag_reaches_the_config(scene_dir, tmp_path, capsy
     assert LanguageField.load(out).meta["config"]["lambda_opacity"] == 0.0  # the earlier field is kept
 
 
+def test_train_language_decode_flag_reaches_the_field(scene_dir, tmp_path) -> None:
+    args = ["train", str(scene_dir), "--iterations", "1", "--num-gaussians", "300"]
+    assert main([*args, "--out", str(tmp_path / "a"), "--language-decode", "continuous"]) == 0
+    assert main([*args, "--out", str(tmp_path / "b")]) == 0
+    plain, default = LanguageField.load(tmp_path / "a"), LanguageField.load(tmp_path / "b")
+    assert plain.meta["config"]["language_decode"] == "continuous" and plain.codebook is None
+    assert default.meta["config"]["language_decode"] == "codebook" and default.codebook is not None
+
+
 # ---------------------------------------------------------------- bench / demo
 
 

@@ -257,13 +257,29 @@ def test_selection_precision_and_recall_against_the_objects_surfaces(scene_dir) 
     result = selection_scores(field, scene)
     objects = result["objects"]
     assert field.queried == sorted(objects) and {"sofa", "mug", "lamp", "table", "wall"} <= set(objects)
-    assert objects["sofa"] == {"precision": 1.0, "recall": 1.0, "selected": 40, "gaussians": 40}
+    assert objects["sofa"] == {
+        "precision": 1.0,
+        "recall": 1.0,
+        "surface_precision": 1.0,
+        "selected": 40,
+        "gaussians": 40,
+    }
     assert objects["mug"]["precision"] == pytest.approx(40 / 62) and objects["mug"]["recall"] == 1.0
+    # The floaters are on no surface: the language part of the mistake is the half lamp alone.
+    assert objects["mug"]["surface_precision"] == pytest.approx(40 / 60)
     assert objects["lamp"]["precision"] == 1.0 and objects["lamp"]["recall"] == 0.5
     # No Gaussian lies on the table or the walls: they have no recall and stay out of the means.
-    assert objects["table"] == {"precision": 0.0, "recall": None, "selected": 0, "gaussians": 0}
+    assert objects["table"] == {
+        "precision": 0.0,
+        "recall": None,
+        "surface_precision": 0.0,
+        "selected": 0,
+        "gaussians": 0,
+    }
     assert result["precision"] == pytest.approx((1 + 40 / 62 + 1) / 3)
     assert result["recall"] == pytest.approx((1 + 1 + 0.5) / 3)
+    assert result["surface_precision"] == pytest.approx((1 + 40 / 60 + 1) / 3)
+    assert result["off_surface"] == pytest.approx(2 / 122)
     assert 0.03 < result["tolerance"] < 0.1  # 1 % of the room's bounds
 
 

@@ -247,6 +247,7 @@ def _set(path: str, value):
         (_set("color_field.grid.log2_table_size", 20), "color.grid"),
         (_set("color_field.hidden", -1), "color_field.hidden"),
         (_set("language.features", "bogus"), "language.features"),
+        (_set("language.codebook", [3, 2]), "language.codebook"),
         (_set("text_encoder", {"kind": "magic"}), "text_encoder.kind"),
         (_set("scene_args", "fast"), "scene_args"),
         (_set("format_version", 99), "format_version"),
@@ -264,6 +265,16 @@ def test_a_malformed_field_json_exits_2_naming_the_file_and_key(
 def test_a_changed_table_size_names_the_tensor_and_both_files(field_dir, tmp_path) -> None:
     out = edited_field(field_dir, tmp_path / "out", _set("color_field.grid.log2_table_size", 20))
     with pytest.raises(FieldFileError, match=r"field\.safetensors: tensor 'color\.grid\.table' has shape"):
+        LanguageField.load(out)
+
+
+def test_a_codebook_size_that_disagrees_names_the_tensor(field_dir, tmp_path) -> None:
+    def grow(meta):
+        meta["language"]["codebook"][1] += 1
+        return meta
+
+    out = edited_field(field_dir, tmp_path / "out", grow)
+    with pytest.raises(FieldFileError, match=r"field\.safetensors: tensor 'codebook\.1' has shape"):
         LanguageField.load(out)
 
 

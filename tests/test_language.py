@@ -77,7 +77,10 @@ def test_save_load_keeps_language(field, scene, tmp_path):
         a, b = field.render(cam), loaded.render(cam)
         assert torch.equal(a.latents, b.latents)
         assert torch.equal(field.decode(a.latents), loaded.decode(b.latents))
+        assert torch.equal(field.decode_levels(a.latents), loaded.decode_levels(b.latents))
     assert loaded.meta["language"]["features"] == field.meta["language"]["features"]
+    assert all(torch.equal(x, y) for x, y in zip(field.codebook, loaded.codebook, strict=True))
+    assert loaded.meta["language"]["codebook"] == [len(c) for c in field.codebook]
 
 
 def test_language_off_gives_no_latents(scene):
@@ -178,3 +181,59 @@ def test_decode_reads_each_latent_at_unit_length(field):
         torch.testing.assert_close(field.decode(0.6 * z), field.decode(z))
         torch.testing.assert_close(field.decode(torch.zeros(2, 3)), field.decoder.decode(torch.zeros(2, 3)))
         assert not torch.allclose(field.decoder.decode(0.6 * z), field.decoder.decode(z), atol=1e-3)
+
+
+def test_codebook_holds_the_training_masks_latents(field, scene):
+    """One unit entry per distinct mask latent of each level, the prototypes LOP groups by."""
+    cfg = TrainConfig(iterations=10, num_gaussians=400, autoencoder_iterations=50)
+    targets = language_targets(scene, cfg, progress=False)
+    for level, entries in enumerate(field.codebook):
+        torch.testing.assert_close(entries.norm(dim=-1), torch.ones(len(entries)))
+        torch.testing.assert_close(entries, torch.nn.functional.normalize(targets.prototypes[level], dim=-1))
+
+
+def test_codebook_indices_of_zero_and_unseen_levels(field):
+    entries = field.codebook
+    latents = torch.stack([entries[level][:2].clone() for level in range(3)])  # [3, 2, 3]
+    latents[1, 1] = 0.0  # an empty pixel: no direction
+    latents[2] *= 0.4  # a short blend points at the same entry
+    index = field.codebook_indices(latents)
+    assert index.tolist() == [[0, 1], [0, -1], [0, 1]]
+    decoded = field.decode_levels(latents)
+    torch.testing.assert_close(decoded[1, 1], field.decode(torch.zeros(3)))
+    torch.testing.assert_close(decoded[0, 1], field.decode(entries[0][1]))
+    emptied = LanguageField(
+        field.splats,
+        field.color,
+        field.meta,
+        field.language,
+        field.decoder,
+        [entries[0], torch.zeros(0, 3), entries[2]],
+    )
+    assert (emptied.codebook_indices(latents)[1] == -1).all()
+    with pytest.raises(ValueError, match="level first"):
+        field.codebook_indices(torch.zeros(2, 5, 3))
+
+
+def test_a_codebook_of_zero_or_misshapen_entries_is_refused(field):
+    parts = (field.splats, field.color, field.meta, field.language, field.decoder)
+    with pytest.raises(ValueError, match="unit latents"):
+        LanguageField(*parts, [torch.zeros(2, 3)] * 3)
+    with pytest.raises(ValueError, match=r"codebook\[0\]: expected \[P, 3\]"):
+        LanguageField(*parts, [torch.ones(2, 4)] * 3)
+    with pytest.raises(ValueError, match="one entry tensor per level"):
+        LanguageField(*parts, field.codebook[:2])
+
+
+def test_continuous_reading_keeps_no_codebook(scene, tmp_path):
+    cfg = TrainConfig(
+        iterations=4, num_gaussians=300, autoencoder_iterations=20, language_decode="continuous"
+    )
+    f = train(scene, cfg, progress=False)
+    assert f.codebook is None and f.meta["language"]["codebook"] is None
+    loaded = LanguageField.load(f.save(tmp_path / "out"))
+    assert loaded.codebook is None
+    z = torch.randn(3, 4, 3, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(loaded.decode_levels(z), loaded.decode(z))
+    with pytest.raises(ValueError, match="--language-decode continuous"):
+        loaded.codebook_indices(z)

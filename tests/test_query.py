@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from encoders.text_table import TableTextEncoder, UnknownPhraseError
 from langfield import Camera, LanguageField, TrainConfig, load_scene, train
@@ -137,8 +138,45 @@ def test_exact_view_decodes_every_pixel(field, scene) -> None:
         r = field.render(cam)
         enc = TableTextEncoder(field.folder / TEXT_TABLE_FILE)
         emb = torch.from_numpy(enc.encode_text(["sofa", "lamp", *CANONICAL_PHRASES]))
-        expected = fill_empty(relevancy(field.decode(r.latents), emb[:2], emb[2:]), r.alpha)
+        expected = fill_empty(relevancy(field.decode_levels(r.latents), emb[:2], emb[2:]), r.alpha)
     torch.testing.assert_close(q.view(cam, exact=True).maps, expected, atol=1e-5, rtol=0)
+
+
+def _continuous(field: LanguageField) -> LanguageField:
+    """The same field read without its codebook (each latent decoded as it is: the paper's reading)."""
+    plain = LanguageField(field.splats, field.color, field.meta, field.language, field.decoder)
+    plain.folder = field.folder
+    return plain
+
+
+def test_codebook_look_up_equals_decoding_the_nearest_entry(field, scene) -> None:
+    """The codebook path looks each pixel's relevancy up in a per-entry table; the reference decodes
+    every pixel's nearest entry, found here by angle, independently of codebook_indices."""
+    assert field.codebook is not None and all(len(c) > 0 for c in field.codebook)
+    q = field.query(["sofa", "lamp"])
+    cam = _test_camera(scene, 1)
+    with torch.no_grad():
+        latents = field.render(cam).latents
+        snapped = torch.zeros_like(latents)
+        for level, entries in enumerate(field.codebook):
+            angle = torch.arccos((F.normalize(latents[level], dim=-1) @ entries.T).clamp(-1, 1))
+            snapped[level] = entries[angle.argmin(dim=-1)]
+        enc = TableTextEncoder(field.folder / TEXT_TABLE_FILE)
+        emb = torch.from_numpy(enc.encode_text(["sofa", "lamp", *CANONICAL_PHRASES]))
+        expected = relevancy(field.decoder.decode(snapped), emb[:2], emb[2:])
+    torch.testing.assert_close(q.relevancy_maps(latents), expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(q.relevancy_maps(latents, exact=True), expected, atol=1e-5, rtol=0)
+    # Every pixel's relevancy is one of its level's table values: a few distinct values per level.
+    assert all(len(torch.unique(expected[0, level])) <= len(field.codebook[level]) for level in range(3))
+
+
+def test_codebook_changes_what_the_continuous_reading_gives(field, scene) -> None:
+    cam = _test_camera(scene, 1)
+    with torch.no_grad():
+        latents = field.render(cam).latents
+    plain = _continuous(field)
+    assert not torch.allclose(field.decode_levels(latents), plain.decode_levels(latents), atol=1e-3)
+    torch.testing.assert_close(plain.decode_levels(latents), field.decode(latents))
 
 
 def test_lattice_stays_close_to_the_exact_decode(field, scene) -> None:
@@ -149,7 +187,7 @@ def test_lattice_stays_close_to_the_exact_decode(field, scene) -> None:
     other level and a different object part; such a flip is allowed only at a near tie (peaks within
     0.05, the size of the lattice's larger errors).
     """
-    q = field.query(PHRASES)
+    q = _continuous(field).query(PHRASES)
     errors, disagree, ious, flips, pairs = [], [], [], 0, 0
     for name in scene.names("test"):
         fast, exact = q.view(name), q.view(name, exact=True)
