@@ -7,6 +7,8 @@ Cases (each a :class:`~langfield.trainer.TrainConfig` change from the full metho
 - ``no-lad``: the plain global depth loss only (no per-mask normalisation);
 - ``no-depth``: without L_D;
 - ``per-gaussian``: one learnable latent per Gaussian instead of the hash grid (LangSplat's way);
+- ``paper-language``: the paper's autoencoder (eq. 2 alone, no spread term) and its reading of a
+  rendered latent (decoded as it is, no codebook);
 - ``no-opacity-reg`` (not in the default set): without the L1 opacity penalty (``lambda_opacity=0``);
 - ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP; the comparison of
   issue 5's mIoU target.
@@ -53,6 +55,7 @@ CASES: dict[str, dict[str, Any]] = {
     "no-lad": {"lad": False},
     "no-depth": {"depth": False},
     "per-gaussian": {"language_features": "per-gaussian"},
+    "paper-language": {"autoencoder_spread": 0.0, "language_decode": "continuous"},
     "no-opacity-reg": {"lambda_opacity": 0.0},
     "baseline": {"language_features": "per-gaussian", "depth": False, "lop": False},
     "random-init": {"init": "random"},
@@ -71,7 +74,7 @@ CASES: dict[str, dict[str, Any]] = {
     "virtual-every-step": {"virtual_every": 1},
     "half-size-virtual": {"virtual_resolution": 0.5},
 }
-LANGUAGE_CASES = ("no-lop", "per-gaussian", "baseline")
+LANGUAGE_CASES = ("no-lop", "per-gaussian", "paper-language", "baseline")
 DEPTH_CASES = ("no-lad", "no-depth", "depth-init")
 EMPTY_CASES = ("no-empty-space",)  # only scenes whose photos show empty space (alpha, a black backdrop)
 # The sparse-view set: each of the geometry switches off in turn.
@@ -84,7 +87,15 @@ GEOMETRY_CASES = (
     "no-empty-space",
     "no-opacity-decay",
 )
-DEFAULT_CASES = ("full", "no-lop", "no-lad", "no-depth", "per-gaussian", *GEOMETRY_CASES[1:])
+DEFAULT_CASES = (
+    "full",
+    "no-lop",
+    "no-lad",
+    "no-depth",
+    "per-gaussian",
+    "paper-language",
+    *GEOMETRY_CASES[1:],
+)
 
 
 def run_case(

@@ -506,12 +506,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--cases",
         default=None,
-        help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, baseline, "
-        "no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, no-virtual, no-random-background, "
-        "no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, full-resolution, "
-        "virtual-every-step, half-size-virtual (default: full, no-lop, no-lad, no-depth, "
-        "per-gaussian, random-init, no-dropout, no-virtual, no-random-background, no-empty-space, "
-        "no-opacity-decay; those a scene cannot use skipped)",
+        help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, paper-language, "
+        "baseline, no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, no-virtual, "
+        "no-random-background, no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, "
+        "full-resolution, virtual-every-step, half-size-virtual (default: full, no-lop, no-lad, "
+        "no-depth, per-gaussian, paper-language, random-init, no-dropout, no-virtual, "
+        "no-random-background, no-empty-space, no-opacity-decay; those a scene cannot use skipped)",
     )
     _add_scene_flags(p)
     p.set_defaults(func=cmd_ablate)
