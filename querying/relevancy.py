@@ -27,7 +27,8 @@ width (a 30-pixel box on a 160-pixel image would erase a mug).
 
 Localization (LangSplat ``lerf_localization``): box-filter each level, take the level with the highest
 maximum, and score a hit if that maximum's pixel lies inside the object (:func:`localization_hit`;
-LangSplat tests it against the object's bounding boxes and accepts any tied maximum).
+LangSplat tests it against the object's bounding boxes and accepts any tied maximum; here of tied
+maxima the one deepest inside their plateau counts).
 
 Small objects: at the map's minimum background, a band of width w pixels survives the threshold only
 if w > 0.4 x the box size (0.5 + 0.5 w / box > 0.7); with the sizes of :func:`scaled_size` that is about
@@ -403,8 +404,12 @@ def localization_point(maps: Tensor, box_size: int | None = None) -> tuple[Tenso
     """The pixel LangSplat's localization points at (``lerf_localization``): box-filter every level,
     keep the level with the highest maximum, return that maximum's pixel.
 
-    Of tied maxima the first in row-major order is taken (LangSplat accepts any tied pixel, so a flat
-    map would hit everywhere).
+    Of maxima tied exactly (a plateau: a map read through a codebook is constant over each concept's
+    pixels, and the relevancy saturates) the one deepest inside its tied region is taken, by
+    chessboard distance to the nearest untied pixel or the image border; among equally deep ones the
+    first level, then the first in row-major order. LangSplat accepts any tied pixel, so a flat map
+    would hit everywhere; the first tied pixel in row-major order would be the plateau's top-left
+    corner, which on a plateau that reaches past the object lies outside it.
 
     Args:
         maps: ``[..., H, W]`` or ``[..., L, H, W]`` relevancy maps; a 2-d map is one level.
@@ -417,13 +422,36 @@ def localization_point(maps: Tensor, box_size: int | None = None) -> tuple[Tenso
     _check_map("localization_point", maps, 2)
     if maps.dim() == 2:
         maps = maps[None]
-    h, w = maps.shape[-2:]
+    levels, h, w = maps.shape[-3:]
+    lead = maps.shape[:-3]
     size = scaled_size(LOCALIZATION_BOX_AT_REFERENCE, w) if box_size is None else box_size
-    filtered = box_filter(maps, size).flatten(-2)  # [..., L, H*W]
-    best, index = filtered.max(dim=-1)
-    level = best.argmax(dim=-1)
-    flat = index.gather(-1, level[..., None]).squeeze(-1)
-    return level, torch.stack([flat // w, flat % w], dim=-1)
+    filtered = box_filter(maps, size).reshape(-1, levels, h, w)  # [B, L, H, W]
+    top = filtered.flatten(1).amax(dim=1)  # [B]
+    depth = _depth_inside(filtered == top[:, None, None, None])  # [B, L, H, W], 0 where not tied
+    flat = depth.flatten(1).argmax(dim=1)  # first of the deepest: first level, then row-major
+    level, pixel = flat // (h * w), flat % (h * w)
+    yx = torch.stack([pixel // w, pixel % w], dim=-1)
+    return level.reshape(lead), yx.reshape(*lead, 2)
+
+
+def _depth_inside(region: Tensor) -> Tensor:
+    """``[B, L, H, W]`` bool -> int32 chessboard distance of each region pixel to the nearest pixel
+    outside the region or outside the image (1 on its rim), 0 outside: repeated 3x3 erosions."""
+    depth = region.to(torch.int32)
+    if int(depth.sum()) <= 1:
+        return depth
+    b, levels, h, w = region.shape
+    current = region.reshape(b * levels, 1, h, w).float()
+    total = current.clone()
+    while True:
+        # 3x3 erosion with the outside of the image counted as outside the region.
+        current = -torch.nn.functional.max_pool2d(
+            torch.nn.functional.pad(-current, (1, 1, 1, 1), value=0.0), 3, stride=1
+        )
+        if not bool(current.any()):
+            break
+        total += current
+    return total.reshape(b, levels, h, w).to(torch.int32)
 
 
 def localization_hit(maps: Tensor, gt_mask: Tensor) -> bool:

@@ -453,11 +453,37 @@ def test_localization_uses_the_box_filtered_maximum_over_levels() -> None:
     assert not localization_hit(maps, _rect(0, 0, 20, 20))
 
 
-def test_localization_of_a_flat_map_points_at_the_first_pixel() -> None:
+def test_localization_of_a_flat_map_points_at_its_centre() -> None:
     flat = torch.full((3, 20, 30), 0.5)
-    _, yx = localization_point(flat)
-    assert yx.tolist() == [0, 0]
-    assert not localization_hit(flat, _rect(5, 5, 5, 5, shape=(20, 30)))
+    level, yx = localization_point(flat)
+    # Every pixel ties; rows 9-10 and columns 9-20 are 10 pixels from the border, the first of them wins.
+    assert int(level) == 0 and yx.tolist() == [9, 9]
+    assert not localization_hit(flat, _rect(0, 0, 5, 5, shape=(20, 30)))
+
+
+def test_localization_of_a_plateau_points_deep_inside_it() -> None:
+    """A codebook-read map is constant over a concept's pixels: a plateau that spills a thin band
+    above the object ties with it everywhere; its deepest point is the object's, not the band's."""
+    gt = _rect(40, 50, 30, 40)  # rows 40-69, columns 50-89
+    maps = torch.zeros(1, HEIGHT, WIDTH)
+    maps[0, 40:70, 50:90] = 0.9
+    maps[0, 30:40, 20:140] = 0.9  # the spill, first in row-major order
+    level, yx = localization_point(maps, box_size=1)
+    assert bool(gt[yx[0], yx[1]]) and localization_hit(maps, gt)
+    # Across levels too: the level whose plateau is deeper is taken, though another ties in value.
+    two = torch.zeros(2, HEIGHT, WIDTH)
+    two[0, 0:3, 0:3] = 0.9
+    two[1, 40:70, 50:90] = 0.9
+    level, yx = localization_point(two, box_size=1)
+    assert int(level) == 1 and bool(gt[yx[0], yx[1]])
+
+
+def test_localization_of_batched_maps_is_per_map() -> None:
+    maps = torch.zeros(2, 3, 20, 30)
+    maps[0, 2, 5, 7] = 1.0
+    maps[1, 0, 12, 3] = 1.0
+    level, yx = localization_point(maps, box_size=1)
+    assert level.tolist() == [2, 0] and yx.tolist() == [[5, 7], [12, 3]]
 
 
 def test_localization_hit_rejects_a_mismatched_mask() -> None:
