@@ -255,8 +255,9 @@ def peak_memory_mib() -> float:
 def query_latency(field, scene: Scene, repeats: int = 3) -> dict[str, float]:
     """Median milliseconds of one phrase's relevance + mask on a test view, once the field is loaded.
 
-    The decoder lattice is built by the first view of the first query (reported as ``first_view_ms``);
-    after that every view costs a render of the latent channels and a lattice look-up.
+    The first view of the first query builds what queries share (reported as ``first_view_ms``): the
+    codebook entries' relevancy, or for a continuous field the decoder lattice; after that every view
+    costs a render of the latent channels and a look-up.
     """
     phrases = sorted({p for n in scene.names("test") for p in scene.segmentations(n)})
     cams = scene.cameras("test")
@@ -412,7 +413,7 @@ def format_table(result: dict) -> str:
             lines.append(
                 f"  query (relevance + mask, one phrase) at {latency['width']} px wide: "
                 f"{latency['ms']:.0f} ms per view "
-                f"(first view, lattice included: {latency['first_view_ms']:.0f} ms)"
+                f"(first view, shared tables included: {latency['first_view_ms']:.0f} ms)"
             )
     if result.get("peak_memory_mib"):
         lines.append(f"peak memory over the training runs: {result['peak_memory_mib']:.0f} MiB")

@@ -38,7 +38,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="a text_embeddings.npz or a CLIP model folder (default: the field's own, see field.json)",
     )
     p.add_argument(
-        "--exact", action="store_true", help="decode every pixel (slow) instead of the decoder lattice"
+        "--exact",
+        action="store_true",
+        help="decode every pixel (slow) instead of the decoder lattice (a field with a codebook: the same)",
     )
     p.set_defaults(func=cmd_query)
     return p

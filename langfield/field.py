@@ -44,7 +44,10 @@ if TYPE_CHECKING:
     from langfield.query import Query
     from langfield.scene import Scene
 
-FORMAT_VERSION = 1
+# 2: a field may carry a codebook (``codebook.{level}`` tensors, ``language.codebook`` sizes); fields
+# of version 1 have none and load as they were.
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 # The copy of the scene's phrase table a saved field keeps beside field.json (text-encoder "table").
 TEXT_TABLE_FILE = "text_embeddings.npz"
 HARD_DEPTH_OPACITY = 0.99  # mu in eq. 7 (the paper; DNGaussian uses 0.95)
@@ -140,6 +143,22 @@ class LanguageField(nn.Module):
         self._rows_memo: tuple[Tensor, Tensor] | None = None
 
     @property
+    def codebook(self) -> list[Tensor] | None:
+        """Per level, the ``[P_l, 3]`` unit latents a rendered latent is read as (None: decoded as it is)."""
+        return self._codebook
+
+    @codebook.setter
+    def codebook(self, entries: Sequence[Tensor] | None) -> None:
+        if entries is None:
+            self._codebook = None
+            return
+        if self.decoder is None:
+            raise ValueError("codebook: a field without a language decoder cannot read latents through one")
+        if len(entries) != N_LEVELS:
+            raise ValueError(f"codebook: need one entry tensor per level ({N_LEVELS}), got {len(entries)}")
+        self._codebook = [check_codebook_level(c, level) for level, c in enumerate(entries)]
+
+    @property
     def has_language(self) -> bool:
         return self.language is not None or "lang" in self.splats
 
@@ -178,10 +197,9 @@ class LanguageField(nn.Module):
             latents: ``[3, ..., 3]`` latents of the three levels (a render's ``latents``, or the
                 Gaussians' own latents moved level-first).
         """
-        if self.codebook is None:
-            raise ValueError("this field has no codebook (it was trained with --language-decode continuous)")
+        self._need_codebook()
         _check_levels(latents)
-        index = torch.full(latents.shape[:-1], -1, dtype=torch.long)
+        index = torch.full(latents.shape[:-1], -1, dtype=torch.long, device=latents.device)
         nonzero = latents.norm(dim=-1) > LATENT_NORM_EPS
         for level, entries in enumerate(self.codebook):
             if entries.shape[0]:
@@ -193,8 +211,13 @@ class LanguageField(nn.Module):
     def codebook_features(self, level: int) -> Tensor:
         """``[P_l + 1, 512]``: the decoded codebook entries of ``level``, then the decoded zero latent
         (row -1, what :meth:`codebook_indices` gives a zero latent)."""
-        entries = self.codebook[level]
+        entries = self._need_codebook()[level]
         return self.decode(torch.cat([entries, entries.new_zeros(1, LATENT_DIM)]))
+
+    def _need_codebook(self) -> list[Tensor]:
+        if self._codebook is None:
+            raise ValueError("this field has no codebook (it was trained with --language-decode continuous)")
+        return self._codebook
 
     def decode_levels(self, latents: Tensor) -> Tensor:
         """``[3, ..., 3]`` latents of the three levels -> ``[3, ..., 512]`` CLIP features.
@@ -203,7 +226,7 @@ class LanguageField(nn.Module):
         it is decoded: the scene's concepts are the training masks' features, and a rendered latent a
         few degrees off decodes to a neighbouring concept on the 3-d sphere, where they lie 6-13
         degrees apart (docs/figures.md, "Language in novel views"); the nearest entry is still the
-        right one. Without a codebook, :meth:`decode`.
+        right one. The choice of entry passes no gradient. Without a codebook, :meth:`decode`.
         """
         if self.codebook is None:
             return self.decode(latents)
@@ -436,7 +459,7 @@ class LanguageField(nn.Module):
             meta = json.loads(meta_path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise FieldFileError(f"{meta_path}: not valid JSON ({err})") from err
-        check_field_meta(meta, meta_path, FORMAT_VERSION)
+        check_field_meta(meta, meta_path, READABLE_VERSIONS)
         if meta.get("tensors_sha256") and meta["tensors_sha256"] != _sha256(tensors_path):
             raise FieldFileError(
                 f"{tensors_path}: checksum differs from {meta_path}; the save was interrupted"
@@ -487,14 +510,20 @@ class LanguageField(nn.Module):
         return sum(t.numel() * t.element_size() for t in self.state_tensors().values())
 
 
+# How far from unit length a codebook entry may be (entries are kept as given: normalising again would
+# move some by a bit, and a saved field must read back exactly).
+CODEBOOK_NORM_TOLERANCE = 1e-4
+
+
 def check_codebook_level(entries: Tensor, level: int) -> Tensor:
     """One level's codebook as float32 ``[P, 3]`` unit latents (P may be 0: a level without masks)."""
     entries = torch.as_tensor(entries).detach().to(torch.float32)
     if entries.dim() != 2 or entries.shape[1] != LATENT_DIM:
         raise ValueError(f"codebook[{level}]: expected [P, {LATENT_DIM}] latents, got {tuple(entries.shape)}")
-    if not bool(torch.isfinite(entries).all()) or bool((entries.norm(dim=-1) < 0.5).any()):
+    norms = entries.norm(dim=-1)
+    if not bool(torch.isfinite(entries).all()) or bool(((norms - 1).abs() > CODEBOOK_NORM_TOLERANCE).any()):
         raise ValueError(f"codebook[{level}]: entries must be finite unit latents (the encoder's output)")
-    return nn.functional.normalize(entries, dim=-1)
+    return entries
 
 
 def _check_levels(latents: Tensor) -> None:

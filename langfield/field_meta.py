@@ -96,13 +96,13 @@ def _get(meta: Mapping, dotted: str) -> Any:
     return value
 
 
-def check_field_meta(meta: Any, path: Path, format_version: int) -> dict[str, Any]:
+def check_field_meta(meta: Any, path: Path, readable: tuple[int, ...]) -> dict[str, Any]:
     """Checks the keys of a parsed ``field.json`` that loading and rendering read.
 
     Args:
         meta: the parsed JSON.
         path: the file, for the messages.
-        format_version: the version this langfield writes.
+        readable: the format versions this langfield reads (the last is the one it writes).
 
     Returns:
         ``meta`` itself, known to hold what :meth:`langfield.field.LanguageField.load` needs.
@@ -113,8 +113,9 @@ def check_field_meta(meta: Any, path: Path, format_version: int) -> dict[str, An
     c = _Checker(path)
     if not isinstance(meta, dict):
         c.fail("the top level", "a JSON object", meta)
-    if meta.get("format_version") != format_version:
-        c.fail("format_version", str(format_version), meta.get("format_version"))
+    version = meta.get("format_version")
+    if not _is_whole(version, 0) or version not in readable:
+        c.fail("format_version", " or ".join(str(v) for v in readable), version)
     for key in ("tensors_sha256", "text_table_sha256"):
         if meta.get(key) is not None and not isinstance(meta[key], str):
             c.fail(key, "a string", meta[key])

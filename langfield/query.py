@@ -449,8 +449,9 @@ class Query:
     Cameras are a :class:`~langfield.camera.Camera` (a scene's own or ``Camera.look_at(...)``) or a view
     of the field's scene by name or index. A query of one phrase returns results without a phrase axis;
     a query of a list returns the phrase axis first, and all its phrases share one rasterization and
-    one lattice look-up per view. The last view is kept, so ``q.relevance(cam)`` then ``q.mask(cam)``
-    compute it once. A query reflects the field when it was made: query again after changing the field.
+    one look-up per view (codebook entries, or the lattice for a continuous field). The last view is
+    kept, so ``q.relevance(cam)`` then ``q.mask(cam)`` compute it once. A query reflects the field when
+    it was made: query again after changing the field.
 
     Example:
         >>> q = field.query(["sofa", "lamp"])  # doctest: +SKIP
@@ -490,7 +491,8 @@ class Query:
 
         Args:
             latents: ``[3, H, W, 3]`` rendered latents (``field.render(cam).latents``).
-            exact: decode every pixel instead of interpolating the lattice.
+            exact: decode every pixel instead of interpolating the lattice (a field with a codebook
+                looks every pixel's entry up either way: that is exact).
 
         Returns:
             ``[Q, 3, H, W]`` relevancy in [0, 1] (``[3, H, W]`` for a query of one phrase), before
@@ -507,7 +509,8 @@ class Query:
 
         Args:
             camera: a Camera, or a view of the field's scene by name or index.
-            exact: decode every pixel (slow; the evaluation's path) instead of the lattice.
+            exact: decode every pixel (slow; the evaluation's path) instead of the lattice; the same
+                for a field with a codebook, whose look-up is exact.
         """
         cam = self._shared.camera(camera)
         if self._last is not None and self._last[0] is cam and self._last[1] == exact:

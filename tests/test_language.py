@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -215,14 +217,35 @@ def test_codebook_indices_of_zero_and_unseen_levels(field):
         field.codebook_indices(torch.zeros(2, 5, 3))
 
 
+def test_codebook_indices_match_the_smallest_angle(field):
+    """Latents of any length and direction, float64 too, against a brute-force smallest angle."""
+    generator = torch.Generator().manual_seed(3)
+    latents = torch.randn(3, 50, 3, generator=generator, dtype=torch.float64) * 3.0
+    index = field.codebook_indices(latents)
+    for level, entries in enumerate(field.codebook):
+        unit = latents[level] / latents[level].norm(dim=-1, keepdim=True)
+        angles = torch.arccos((unit @ entries.double().T).clamp(-1, 1))
+        assert torch.equal(index[level], angles.argmin(dim=-1))
+    tiny = torch.full((3, 1, 3), 1e-7)  # below LATENT_NORM_EPS: no direction
+    assert (field.codebook_indices(tiny) == -1).all()
+
+
 def test_a_codebook_of_zero_or_misshapen_entries_is_refused(field):
     parts = (field.splats, field.color, field.meta, field.language, field.decoder)
     with pytest.raises(ValueError, match="unit latents"):
         LanguageField(*parts, [torch.zeros(2, 3)] * 3)
+    with pytest.raises(ValueError, match="unit latents"):
+        LanguageField(*parts, [torch.full((1, 3), 0.7)] * 3)
     with pytest.raises(ValueError, match=r"codebook\[0\]: expected \[P, 3\]"):
         LanguageField(*parts, [torch.ones(2, 4)] * 3)
     with pytest.raises(ValueError, match="one entry tensor per level"):
         LanguageField(*parts, field.codebook[:2])
+    copy = LanguageField(*parts)
+    with pytest.raises(ValueError, match="one entry tensor per level"):
+        copy.codebook = []  # the setter checks as the constructor does
+    assert copy.codebook is None
+    with pytest.raises(ValueError, match="without a language decoder"):
+        LanguageField(field.splats, field.color, field.meta, field.language, None, field.codebook)
 
 
 def test_continuous_reading_keeps_no_codebook(scene, tmp_path):
@@ -237,3 +260,27 @@ def test_continuous_reading_keeps_no_codebook(scene, tmp_path):
     torch.testing.assert_close(loaded.decode_levels(z), loaded.decode(z))
     with pytest.raises(ValueError, match="--language-decode continuous"):
         loaded.codebook_indices(z)
+    with pytest.raises(ValueError, match="--language-decode continuous"):
+        loaded.codebook_features(0)
+
+
+def test_a_field_of_format_1_loads_without_a_codebook(scene, tmp_path):
+    cfg = TrainConfig(
+        iterations=2, num_gaussians=300, autoencoder_iterations=20, language_decode="continuous"
+    )
+    out = train(scene, cfg, progress=False).save(tmp_path / "out")
+    meta = json.loads((out / "field.json").read_text())
+    meta["format_version"] = 1
+    del meta["language"]["codebook"]  # what version 1 wrote
+    (out / "field.json").write_text(json.dumps(meta))
+    loaded = LanguageField.load(out)
+    assert loaded.codebook is None and loaded.meta["format_version"] == 1
+
+
+def test_setting_the_codebook_to_none_saves_a_continuous_field(field, tmp_path):
+    copy = LanguageField(
+        field.splats, field.color, dict(field.meta), field.language, field.decoder, field.codebook
+    )
+    copy.codebook = None
+    loaded = LanguageField.load(copy.save(tmp_path / "out"))
+    assert loaded.codebook is None and loaded.meta["language"]["codebook"] is None

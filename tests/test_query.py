@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from torch import Tensor
 
 from encoders.text_table import TableTextEncoder, UnknownPhraseError
 from langfield import Camera, LanguageField, TrainConfig, load_scene, train
@@ -149,25 +150,51 @@ def _continuous(field: LanguageField) -> LanguageField:
     return plain
 
 
+def _snapped(field: LanguageField, latents: Tensor) -> Tensor:
+    """Reference reading: each latent's entry at the smallest angle, found by arccos; zero stays zero."""
+    snapped = torch.zeros_like(latents)
+    for level, entries in enumerate(field.codebook):
+        angle = torch.arccos((F.normalize(latents[level], dim=-1) @ entries.T).clamp(-1, 1))
+        nonzero = latents[level].norm(dim=-1) > 0
+        snapped[level][nonzero] = entries[angle.argmin(dim=-1)][nonzero]
+    return snapped
+
+
 def test_codebook_look_up_equals_decoding_the_nearest_entry(field, scene) -> None:
     """The codebook path looks each pixel's relevancy up in a per-entry table; the reference decodes
-    every pixel's nearest entry, found here by angle, independently of codebook_indices."""
+    every pixel's nearest entry, found here by angle, independently of codebook_indices (a zero
+    latent, an empty pixel, is decoded as zero)."""
     assert field.codebook is not None and all(len(c) > 0 for c in field.codebook)
     q = field.query(["sofa", "lamp"])
     cam = _test_camera(scene, 1)
     with torch.no_grad():
-        latents = field.render(cam).latents
-        snapped = torch.zeros_like(latents)
-        for level, entries in enumerate(field.codebook):
-            angle = torch.arccos((F.normalize(latents[level], dim=-1) @ entries.T).clamp(-1, 1))
-            snapped[level] = entries[angle.argmin(dim=-1)]
+        latents = field.render(cam).latents.clone()
+        latents[:, :4, :5] = 0.0  # empty pixels at every level
         enc = TableTextEncoder(field.folder / TEXT_TABLE_FILE)
         emb = torch.from_numpy(enc.encode_text(["sofa", "lamp", *CANONICAL_PHRASES]))
-        expected = relevancy(field.decoder.decode(snapped), emb[:2], emb[2:])
-    torch.testing.assert_close(q.relevancy_maps(latents), expected, atol=1e-5, rtol=0)
+        expected = relevancy(field.decoder.decode(_snapped(field, latents)), emb[:2], emb[2:])
+    got = q.relevancy_maps(latents)
+    torch.testing.assert_close(got, expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(q.relevancy_maps(latents, exact=True), expected, atol=1e-5, rtol=0)
+    zero = relevancy(field.decoder.decode(torch.zeros(1, 3)), emb[:2], emb[2:])[:, 0]  # [2]
+    torch.testing.assert_close(got[:, :, 0, 0], zero[:, None].expand(2, 3), atol=1e-5, rtol=0)
     # Every pixel's relevancy is one of its level's table values: a few distinct values per level.
-    assert all(len(torch.unique(expected[0, level])) <= len(field.codebook[level]) for level in range(3))
+    assert all(len(torch.unique(expected[0, level])) <= len(field.codebook[level]) + 1 for level in range(3))
+
+
+def test_3d_selection_reads_each_gaussian_through_the_codebook(field) -> None:
+    q = field.query(["sofa", "lamp"])
+    with torch.no_grad():
+        latents = field.gaussian_latents().transpose(0, 1)  # [3, N, 3]
+        enc = TableTextEncoder(field.folder / TEXT_TABLE_FILE)
+        emb = torch.from_numpy(enc.encode_text(["sofa", "lamp", *CANONICAL_PHRASES]))
+        rel = relevancy(field.decoder.decode(_snapped(field, latents)), emb[:2], emb[2:])  # [2, 3, N]
+    for k, selection in enumerate(q.gaussians()):
+        torch.testing.assert_close(
+            selection.scores, rel[k, selection.level, selection.indices], atol=1e-5, rtol=0
+        )
+        assert float(rel[k, selection.level].max()) >= float(rel[k].max()) - 1e-5  # the peak's level
+        assert len(selection.indices) > 0
 
 
 def test_codebook_changes_what_the_continuous_reading_gives(field, scene) -> None:

@@ -478,12 +478,30 @@ def test_localization_of_a_plateau_points_deep_inside_it() -> None:
     assert int(level) == 1 and bool(gt[yx[0], yx[1]])
 
 
+def test_localization_ties_after_the_box_filter_point_inside_the_larger_plateau() -> None:
+    """With the default box (3x3 at this width) a saturated object region and a thin saturated band
+    both reach the same filtered maximum; the band is first in row-major order, the object deeper."""
+    gt = _rect(40, 50, 30, 40)
+    maps = torch.zeros(HEIGHT, WIDTH)
+    maps[40:70, 50:90] = 1.0
+    maps[5:8, 10:150] = 1.0  # three rows: its middle row reaches the maximum too
+    level, yx = localization_point(maps)
+    assert level.shape == () and yx.shape == (2,)
+    assert bool(gt[yx[0], yx[1]]) and localization_hit(maps, gt)
+
+
 def test_localization_of_batched_maps_is_per_map() -> None:
     maps = torch.zeros(2, 3, 20, 30)
     maps[0, 2, 5, 7] = 1.0
     maps[1, 0, 12, 3] = 1.0
     level, yx = localization_point(maps, box_size=1)
     assert level.tolist() == [2, 0] and yx.tolist() == [[5, 7], [12, 3]]
+    # Plateaus of different depths in one batch: each map takes its own deepest pixel.
+    plateaus = torch.zeros(2, 1, 20, 30)
+    plateaus[0, 0, 2:5, 2:5] = 1.0  # depth 2 at (3, 3)
+    plateaus[1, 0, 4:17, 10:23] = 1.0  # depth 7 at (10, 16)
+    level, yx = localization_point(plateaus, box_size=1)
+    assert level.tolist() == [0, 0] and yx.tolist() == [[3, 3], [10, 16]]
 
 
 def test_localization_hit_rejects_a_mismatched_mask() -> None:
