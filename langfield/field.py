@@ -1,8 +1,9 @@
 """LanguageField: trained Gaussians with their neural colour field; render, save, load.
 
-On disk (FORMAT.md): ``field.safetensors`` (every tensor, no pickle), ``field.json`` (config, format
-version, bounds, training views, text-encoder reference, timings and the checksum of the tensors file),
-``gaussians.ply`` (standard 3DGS) and, when the text encoder is a scene's phrase table, a copy of it
+On disk (FORMAT.md): ``field.safetensors`` (every tensor, no pickle; from format 2 also the codebook,
+``codebook.{level}``), ``field.json`` (config, format version, bounds, training views, text-encoder
+reference, timings and the checksum of the tensors file), ``gaussians.ply`` (standard 3DGS) and,
+when the text encoder is a scene's phrase table, a copy of it
 (``text_embeddings.npz``) so that the folder answers text queries on its own. Files are first written
 completely into a staging folder beside the output folder, then moved into place with ``field.json``
 last; ``field.json`` names the SHA-256 of the tensors and of the table it belongs to, so a field
