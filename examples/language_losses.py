@@ -90,7 +90,6 @@ def main(argv: list[str]) -> int:
         for name in names:
             out = field.render(scene.camera(name))
             rendered[name] = (out.latents, out.alpha)
-    renders = {n: (field.decode_levels(z), alpha) for n, (z, alpha) in rendered.items()}
 
     # The autoencoder, refitted as training fitted it (its decoder is compared with the saved one).
     saved = field.meta["config"]
@@ -115,6 +114,7 @@ def main(argv: list[str]) -> int:
             codebook if decode == "codebook" else None,
         )
         readers[decode] = {n: (reader.decode_levels(z), alpha) for n, (z, alpha) in rendered.items()}
+    renders = readers["continuous" if field.codebook is None else "codebook"]  # what eval scores
     autoencoder = targets.autoencoder
     refit, own = autoencoder.decoder.state_dict(), field.decoder.decoder.state_dict()
     diff = max(float((refit[k] - own[k]).abs().max()) for k in own)

@@ -127,13 +127,7 @@ class LanguageField(nn.Module):
         self.meta = meta
         self.language = language
         self.decoder = decoder
-        self.codebook = (
-            None if codebook is None else [check_codebook_level(c, i) for i, c in enumerate(codebook)]
-        )
-        if self.codebook is not None and len(self.codebook) != N_LEVELS:
-            raise ValueError(
-                f"codebook: need one entry tensor per level ({N_LEVELS}), got {len(self.codebook)}"
-            )
+        self.codebook = codebook  # checked by the setter
         self.folder: Path | None = None
         # The language grid may reuse the colour grid's cell look-up when both share the layout.
         self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
