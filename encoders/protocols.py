@@ -26,6 +26,7 @@ from typing import Literal, Protocol, runtime_checkable
 import numpy as np
 
 __all__ = [
+    "CANONICAL_PHRASES",
     "DEPTH_KINDS",
     "LEVELS",
     "DepthEstimator",
@@ -37,6 +38,8 @@ __all__ = [
 ]
 
 LEVELS = ("subpart", "part", "whole")
+# LERF / LangSplat canonical ("negative") phrases that every query competes against.
+CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 DEPTH_KINDS = ("depth", "disparity")
 DepthKind = Literal["depth", "disparity"]
 

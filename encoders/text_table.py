@@ -23,11 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from encoders.protocols import check_phrases
+from encoders.protocols import CANONICAL_PHRASES, check_phrases
 
 __all__ = ["CANONICAL_PHRASES", "TableTextEncoder", "TextTableError", "UnknownPhraseError"]
 
-CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 _LISTED = 20  # known phrases shown in an unknown-phrase message
 _MIN_NORM = 1e-8  # a stored vector shorter than this has no direction
 

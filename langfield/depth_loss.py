@@ -30,6 +30,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from encoders.protocols import DEPTH_KINDS, DepthKind
+
 __all__ = [
     "GLOBAL_STD_RATIO",
     "LAMBDA_SA",
@@ -43,8 +45,6 @@ __all__ = [
     "global_depth_loss",
     "lad_loss",
 ]
-
-DepthKind = Literal["depth", "disparity"]
 
 LAMBDA_SA = 0.1  # eq. 11
 MIN_MASK_PIXELS = 16  # masks with fewer valid pixels carry no usable depth structure
@@ -116,7 +116,7 @@ class LADTarget:
         Returns:
             The view's :class:`LADTarget` (tensors on ``prior``'s device, float32).
         """
-        if depth_kind not in ("depth", "disparity"):
+        if depth_kind not in DEPTH_KINDS:
             raise ValueError(f"depth_kind must be 'depth' or 'disparity', got {depth_kind!r}")
         if prior.ndim != 2 or not prior.is_floating_point():
             raise ValueError(f"prior must be a float [H, W] tensor, got {prior.dtype} {tuple(prior.shape)}")

@@ -20,9 +20,10 @@ from dataclasses import replace
 
 from torch import Tensor, nn
 
+from encoders.protocols import LEVELS
 from langfield.hashgrid import HashGrid, HashGridConfig
 
-N_LEVELS = 3
+N_LEVELS = len(LEVELS)  # subpart, part, whole
 LATENT_DIM = 3
 LANGUAGE_CHANNELS = N_LEVELS * LATENT_DIM
 FEATURES_PER_LEVEL = 2  # of each level's grid, as the colour grid (DNGaussian: 16 levels x 2)

@@ -43,7 +43,7 @@ from encoders.cache import (
 )
 from encoders.protocols import DepthEstimator, ImageTextEncoder, Segmenter
 from langfield.atomic import atomic_path
-from langfield.scene import Scene, _read_rgba, load_scene
+from langfield.scene import Scene, load_scene
 
 __all__ = ["Models", "PreprocessError", "PreprocessReport", "load_models", "preprocess_scene"]
 
@@ -271,11 +271,11 @@ def preprocess_scene(
                 report.num_masks += cache.num_masks
             if name in depth_todo:
                 t0 = time.perf_counter()
-                prior = depth.estimate(_stored_image(scene, name))
+                prior = depth.estimate(scene.stored_image(name))
                 depth_seconds += time.perf_counter() - t0
                 _write_depth(scene, name, prior, type(depth).__name__)
                 report.depths_written.append(name)
-            _forget_image(scene, name)
+            scene.forget_image(name)
             bar.set_postfix_str(name)
             bar.update()
 
@@ -355,22 +355,6 @@ def _depth_done(scene: Scene, name: str) -> bool:
         and np.issubdtype(arr.dtype, np.floating)
         and bool(np.isfinite(arr).all())
     )
-
-
-def _forget_image(scene: Scene, name: str) -> None:
-    """Drop a view's image from the scene's cache: one pass reads each image once, and a scene of
-    hundreds of large photos would not fit in memory."""
-    scene._cache.pop(name, None)
-
-
-def _stored_image(scene: Scene, name: str) -> np.ndarray:
-    """[H, W, 3] float32 RGB of the image file as stored (not undistorted), alpha composited on white."""
-    view = scene.views[scene.names("all").index(name)]
-    image = _read_rgba(view.image_path)
-    if image.shape[2] == 4:
-        alpha = image[..., 3:]
-        image = image[..., :3] * alpha + (1.0 - alpha)
-    return np.ascontiguousarray(image, dtype=np.float32)
 
 
 def _write_depth(scene: Scene, name: str, prior: np.ndarray, who: str) -> None:

@@ -29,14 +29,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from encoders.protocols import DEPTH_KINDS
 from langfield import colmap
 from langfield.camera import Camera
+from langfield.constants import TEXT_TABLE_FILE
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 _TEST_EVERY = 8  # LLFF protocol (RegNeRF, DNGaussian, FSGS): every 8th image is held out
 _DEFAULT_N_VIEWS = 3
 _SPLITS = ("train", "test")
-_DEPTH_KINDS = ("depth", "disparity")
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2")
 _COLMAP_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips y and z; its own inverse
@@ -128,7 +129,7 @@ class Scene:
             for f, split in zip(layout.frames, splits, strict=True)
         ]
         self._index = {view.name: i for i, view in enumerate(self.views)}
-        embeddings = self.root / "text_embeddings.npz"
+        embeddings = self.root / TEXT_TABLE_FILE
         self.text_embeddings_path = embeddings if embeddings.is_file() else None
 
     def __repr__(self) -> str:
@@ -158,6 +159,20 @@ class Scene:
         if key not in self._cache:
             self._cache[key] = self._read_image(i)
         return self._cache[key]
+
+    def forget_image(self, name: str | int) -> None:
+        """Drops a view's image from the cache: a pass that reads each image once (preprocessing) keeps
+        a scene of hundreds of large photos out of memory."""
+        self._cache.pop(self.views[self._position(name)].name, None)
+
+    def stored_image(self, name: str | int) -> np.ndarray:
+        """[H, W, 3] float32 RGB of the image file as stored (full size, not undistorted, not cached),
+        alpha composited on white: what a depth model is given."""
+        image = _read_rgba(self.views[self._position(name)].image_path)
+        if image.shape[2] == 4:
+            alpha = image[..., 3:]
+            image = image[..., :3] * alpha + (1.0 - alpha)
+        return np.ascontiguousarray(image, dtype=np.float32)
 
     def depth(self, name: str | int) -> np.ndarray | None:
         """[H, W] float32 `depths/<name>.npy` at working resolution, or None if there is none.
@@ -608,7 +623,7 @@ def _depth_kind(root: Path, path: Path, meta: dict) -> str | None:
     if kind is None:
         # Monocular depth models (DPT, MiDaS, Depth Anything) output disparity, so that is the default.
         return "disparity" if (root / "depths").is_dir() else None
-    if kind not in _DEPTH_KINDS:
+    if kind not in DEPTH_KINDS:
         raise SceneError(f"{path}: depth_kind must be 'depth' or 'disparity', got {kind!r}")
     return kind
 

@@ -40,7 +40,9 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from encoders.protocols import CANONICAL_PHRASES, LEVELS
 from langfield.camera import Camera
+from langfield.constants import TEXT_TABLE_FILE
 
 __all__ = [
     "CANONICAL_PHRASES",
@@ -54,9 +56,7 @@ __all__ = [
     "room_layout",
 ]
 
-LEVELS = ("subpart", "part", "whole")
 FEATURE_DIM = 512
-CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 # Synonym -> the label it means; its embedding is that label's plus a little noise.
 SYNONYMS = {
     "couch": "sofa",
@@ -163,7 +163,7 @@ def make_room(
         _write_segmentations(out / "segmentations" / cam.name, ids, prims)
 
     _write_transforms(out / "transforms.json", cameras, n_train, prims, seed, scale, layout)
-    _write_text_embeddings(out / "text_embeddings.npz", concepts, seed)
+    _write_text_embeddings(out / TEXT_TABLE_FILE, concepts, seed)
     _write_ground_truth_mesh(out / "gt", prims)
     return out
 

@@ -34,10 +34,12 @@ from encoders.autoencoder import (
     train_autoencoder,
 )
 from encoders.cache import read_feature_cache
+from encoders.protocols import LEVELS
 from langfield import gaussians as G
 from langfield.camera import Camera
 from langfield.depth_loss import LAMBDA_SA, LADTarget, depth_loss
 from langfield.field import GridFeatures, LanguageField, Render, color_field_spec
+from langfield.field_meta import LANGUAGE_FEATURES
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
 from langfield.initialisation import INIT_METHODS, StartPoints, start_points
@@ -199,9 +201,10 @@ class TrainConfig:
         check_config(self)
 
 
-# The `langfield train` flag of each setting that has one, named in the messages of check_config.
 LANGUAGE_DECODES = ("codebook", "continuous")  # TrainConfig.language_decode
 
+# The `langfield train` flag of each setting that has one, named in the messages of check_config (and
+# checked against the parser by the tests).
 CONFIG_FLAGS = {
     "iterations": "--iterations",
     "seed": "--seed",
@@ -286,8 +289,8 @@ def check_config(cfg: TrainConfig) -> None:
     whole("color_freqs", 0)
     for name in ("grid_lr", "mlp_lr", "per_gaussian_language_lr"):
         number(name, 0.0, open_low=True)
-    if cfg.language_features not in ("hashgrid", "per-gaussian"):
-        fail("language_features", "'hashgrid' or 'per-gaussian'")
+    if cfg.language_features not in LANGUAGE_FEATURES:
+        fail("language_features", " or ".join(map(repr, LANGUAGE_FEATURES)))
     whole("language_hidden", 1)
     number("language_grid_scale", 0.0, 1.0, open_low=True)
     whole("autoencoder_iterations", 1)
@@ -633,7 +636,7 @@ def build_field(
             "features": cfg.language_features,
             "hidden": cfg.language_hidden,
             "grid": asdict(grid if language is None else language.grid.cfg),
-            "levels": ["subpart", "part", "whole"][:N_LEVELS],
+            "levels": list(LEVELS[:N_LEVELS]),
             "autoencoder": asdict(targets.config),
             "autoencoder_stats": targets.stats,
             "codebook": None if codebook is None else [int(c.shape[0]) for c in codebook],

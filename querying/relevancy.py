@@ -56,6 +56,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from encoders.protocols import CANONICAL_PHRASES
+
 __all__ = [
     "CANONICAL_PHRASES",
     "EMBEDDING_EPS",
@@ -81,8 +83,6 @@ __all__ = [
     "smooth_map",
 ]
 
-# LERF / LangSplat canonical ("negative") phrases that every query competes against.
-CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 # Softmax temperature of the pairwise relevancy: softmax(10 * [s_q, s_c]) (LERF, LangSplat).
 TEMPERATURE = 10.0
 # Norm floor when normalising features, so zero vectors give similarity 0 (relevancy 0.5), not NaN.

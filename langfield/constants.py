@@ -1,0 +1,16 @@
+"""Names and numbers that more than one module must agree on, kept in one place.
+
+A leaf module: it imports nothing from langfield, so any module may use it.
+"""
+
+from __future__ import annotations
+
+__all__ = ["LATENT_NORM_EPS", "TEXT_TABLE_FILE"]
+
+# The copy of the scene's phrase table a saved field keeps beside field.json (text-encoder "table"), and
+# the name of that table in a scene folder.
+TEXT_TABLE_FILE = "text_embeddings.npz"
+
+# A latent is divided by max(|z|, this) before decoding: a zero latent (an empty pixel, a level without
+# masks) stays zero, and only latents shorter than this are not brought to unit length.
+LATENT_NORM_EPS = 1e-6
