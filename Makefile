@@ -19,7 +19,7 @@ $(BIN)/python:
 $(VENV)/.installed: $(BIN)/python pyproject.toml $(LOCK)
 	$(BIN)/pip install -c $(LOCK) "$(TORCH)"
 	$(BIN)/pip install -c $(LOCK) -e ".[test]"
-	$(BIN)/python -c "from langfield.kernels import main; main()"
+	$(BIN)/python -c "from langfield.warmup import main; main()"
 	touch $@
 
 install: system $(VENV)/.installed
@@ -30,6 +30,7 @@ system:
 
 lint: install
 	$(BIN)/ruff check .
+	$(BIN)/lint-imports
 
 test: lint
 	$(BIN)/python -m pytest -q

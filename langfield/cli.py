@@ -66,14 +66,9 @@ def _add_ablation_flags(p: argparse.ArgumentParser) -> None:
 
 def _load_field_and_scene(out: str, scene_path: str | None):
     from langfield.field import LanguageField
-    from langfield.scene import load_scene
 
     field = LanguageField.load(out)
-    path = scene_path or field.meta.get("scene")
-    if not path:
-        raise ValueError(f"{out}/field.json names no scene; pass the scene folder")
-    scene = load_scene(path, **field.meta.get("scene_args", {}))
-    return field, scene
+    return field, field.trained_scene(scene_path)
 
 
 def train_config(args: argparse.Namespace):

@@ -65,19 +65,15 @@ def cmd_query(args: argparse.Namespace) -> int:
     from langfield.atomic import check_writable_folder
     from langfield.field import LanguageField
     from langfield.query import MATCH_RELEVANCY, EmptySelectionError, make_query
-    from langfield.scene import load_scene
     from querying.visualize import contact_sheet, heatmap_overlay, mask_overlay
 
     save = check_writable_folder(args.save, "--save")
     field = LanguageField.load(args.out)
-    scene_path = args.scene or field.meta.get("scene")
-    if not scene_path:
-        raise ValueError(f"{args.out}/field.json names no scene; pass --scene")
-    scene = load_scene(scene_path, **(field.meta.get("scene_args") or {}))
+    scene = field.trained_scene(args.scene, remedy="pass --scene")
     keys = _view_keys(args.views)
     names = scene.names(keys) if isinstance(keys, str) else [scene.camera(k).name for k in keys]
     if not names:
-        raise ValueError(f"{scene_path}: no {args.views} views to query")
+        raise ValueError(f"{scene.root}: no {args.views} views to query")
     try:
         query = make_query(field, list(args.phrases), args.text_encoder, scene=scene)
     except UnknownPhraseError as err:

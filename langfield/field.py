@@ -31,32 +31,26 @@ from torch import Tensor, nn
 from encoders.autoencoder import AutoencoderConfig, LanguageDecoder, decoder_state, load_decoder
 from langfield import gaussians as G
 from langfield.camera import Camera
+from langfield.constants import LATENT_NORM_EPS, TEXT_TABLE_FILE
 from langfield.field_meta import FieldFileError, check_field_meta, check_tensors
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
 from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
 from langfield.ply import write_gaussian_ply
+from langfield.query import Query, make_query
 from langfield.raster import Backend, rasterize, rasterize_with_second_pass
+from langfield.scene import Scene, load_scene
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
     from encoders.protocols import TextEncoder
-    from langfield.query import Query
-    from langfield.scene import Scene
 
 # 2: a field may carry a codebook (``codebook.{level}`` tensors, ``language.codebook`` sizes); fields
 # of version 1 have none and load as they were.
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
-# The copy of the scene's phrase table a saved field keeps beside field.json (text-encoder "table").
-TEXT_TABLE_FILE = "text_embeddings.npz"
 HARD_DEPTH_OPACITY = 0.99  # mu in eq. 7 (the paper; DNGaussian uses 0.95)
-
-
-# decode divides a latent by max(|z|, this): a zero latent (an empty pixel, a level without masks) stays
-# zero, and only latents shorter than this are not brought to unit length.
-LATENT_NORM_EPS = 1e-6
 
 
 class GridFeatures(NamedTuple):
@@ -336,9 +330,50 @@ class LanguageField(nn.Module):
         evaluated lazily per camera (a Camera, or a view of ``scene`` by name or index). See
         :func:`langfield.query.make_query`.
         """
-        from langfield.query import make_query
-
         return make_query(self, phrases, text_encoder, scene=scene)
+
+    def trained_scene(self, path: str | Path | None = None, remedy: str = "pass the scene folder") -> Scene:
+        """The scene the field was trained on (``path`` if given, else the folder ``field.json``
+        records), loaded as for training: with the resolution and split recorded in ``scene_args``.
+
+        Raises:
+            ValueError: no ``path`` and the field records none (the message ends with ``remedy``).
+        """
+        where = path or self.meta.get("scene")
+        if not where:
+            source = f"{self.folder}/field.json" if self.folder is not None else "the field"
+            raise ValueError(f"{source} names no scene; {remedy}")
+        return load_scene(where, **(self.meta.get("scene_args") or {}))
+
+    def select(self, index: Tensor) -> LanguageField:
+        """The field restricted to the Gaussians at ``index`` (``[K]`` long): the same colour and
+        language fields, decoder and codebook, a copy of the meta; the selected splats are detached."""
+        splats = nn.ParameterDict(
+            {k: nn.Parameter(v.detach()[index], requires_grad=False) for k, v in self.splats.items()}
+        )
+        return LanguageField(splats, self.color, dict(self.meta), self.language, self.decoder, self.codebook)
+
+    def export_ply(self, path: str | Path, index: Tensor | None = None) -> Path:
+        """Writes the Gaussians (those at ``index``, default all) as a standard 3DGS PLY
+        (:mod:`langfield.ply`), atomically; the colour field is baked into the degree-0 coefficient at
+        each centre, clipped to [0, 1]. Missing parent folders are made."""
+        splats = {k: v.detach() for k, v in self.splats.items()}
+        if index is not None:
+            splats = {k: v[index] for k, v in splats.items()}
+        with torch.no_grad():
+            rgb = self.color.bake_dc(splats["means"]).numpy()
+            quats = G.quats_normalized(splats).numpy()
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_gaussian_ply(
+            path,
+            splats["means"].numpy(),
+            np.clip(rgb, 0.0, 1.0),
+            splats["opacity_logits"].numpy(),
+            splats["log_scales"].numpy(),
+            quats,
+        )
+        return path
 
     # ------------------------------------------------------------------ persistence
 
@@ -392,17 +427,7 @@ class LanguageField(nn.Module):
         """Writes the field's files into an empty ``folder``; returns the phrase table copied, if any."""
         save_file(self.state_tensors(), str(folder / "field.safetensors"))
         digest = _sha256(folder / "field.safetensors")
-        with torch.no_grad():
-            rgb = self.color.bake_dc(self.splats["means"]).numpy()
-            quats = G.quats_normalized(self.splats).numpy()
-        write_gaussian_ply(
-            folder / "gaussians.ply",
-            self.splats["means"].detach().numpy(),
-            np.clip(rgb, 0.0, 1.0),
-            self.splats["opacity_logits"].detach().numpy(),
-            self.splats["log_scales"].detach().numpy(),
-            quats,
-        )
+        self.export_ply(folder / "gaussians.ply")
         meta = dict(
             self.meta, format_version=FORMAT_VERSION, num_gaussians=self.num_gaussians, tensors_sha256=digest
         )

@@ -26,7 +26,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from langfield.raster.cpu_geometry import configure_numba_threads
+from langfield.kernels import configure_numba_threads
 
 configure_numba_threads()
 

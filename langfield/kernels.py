@@ -4,30 +4,47 @@ numba compiles the rasterizer's and the hash grid's kernels the first time a pro
 keeps the machine code on disk (``cache=True``, in ``__pycache__`` beside the sources); later processes
 load it in well under a second. The first compilation takes about a minute on two cores, which a user
 would otherwise see as an unexplained pause in their first ``langfield train``. :func:`notice_once`
-prints one line before it; :func:`main` (run by ``make install``) compiles every kernel on a tiny
-input so that the first real run starts at once.
+prints one line before it; :func:`langfield.warmup.main` (run by ``make install``) compiles every
+kernel on a tiny input so that the first real run starts at once.
+
+A leaf module: the rasterizer and the hash grid call :func:`notice_once`, so it finds the kernel
+modules by name (:data:`KERNEL_MODULES`) rather than importing them.
 """
 
 from __future__ import annotations
 
+import importlib
+import os
 import sys
-import time
 
-__all__ = ["main", "notice_once", "uncompiled_kernels", "warm_up"]
+__all__ = ["KERNEL_MODULES", "configure_numba_threads", "notice_once", "uncompiled_kernels"]
+
+# The modules whose numba kernels are cached on disk.
+KERNEL_MODULES = ("langfield.raster.cpu_geometry", "langfield.raster.cpu_backend", "langfield.hashgrid_cpu")
 
 _noticed = False
+
+
+def configure_numba_threads() -> None:
+    """Chooses numba's workqueue threading layer unless the user set NUMBA_THREADING_LAYER; every
+    kernel module calls it before defining its kernels.
+
+    numba's OpenMP layer keeps its threads spinning after each kernel, and they fight PyTorch's own
+    OpenMP threads for the 2 cores: every torch op right after a kernel ran ~50x slower. The workqueue
+    layer parks its threads instead.
+    """
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        import numba
+
+        numba.config.THREADING_LAYER = "workqueue"
 
 
 def _dispatchers() -> dict[str, object]:
     """Every disk-cached numba kernel of langfield, by qualified name."""
     from numba.core.registry import CPUDispatcher
 
-    import langfield.hashgrid_cpu as hashgrid
-    import langfield.raster.cpu_backend as backend
-    import langfield.raster.cpu_geometry as geometry
-
     found = {}
-    for module in (geometry, backend, hashgrid):
+    for module in map(importlib.import_module, KERNEL_MODULES):
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher) and value._cache.__class__.__name__ == "FunctionCache":
                 found[f"{module.__name__}.{name}"] = value
@@ -63,38 +80,3 @@ def notice_once() -> None:
             file=sys.stderr,
             flush=True,
         )
-
-
-def warm_up() -> float:
-    """Compiles (or loads) every kernel by rendering a few Gaussians forward and backward with the
-    ``cpu`` backend and a hash-grid colour field, as training does. Returns the seconds it took."""
-    import torch
-
-    from langfield.camera import Camera
-    from langfield.fields import ColorField
-    from langfield.hashgrid import HashGridConfig
-    from langfield.raster import rasterize
-
-    t0 = time.perf_counter()
-    notice_once()
-    generator = torch.Generator().manual_seed(0)
-    n = 64
-    means = (torch.rand(n, 3, generator=generator) - 0.5).requires_grad_(True)
-    quats = torch.randn(n, 4, generator=generator).requires_grad_(True)
-    scales = torch.full((n, 3), 0.05).requires_grad_(True)
-    opacities = torch.full((n,), 0.5).requires_grad_(True)
-    color = ColorField(HashGridConfig(n_levels=2, log2_table_size=8), torch.zeros(3), 1.0)
-    features = color(means, torch.nn.functional.normalize(means, dim=-1))
-    camera = Camera.look_at(eye=(0, -2, 0.5), target=(0, 0, 0), width=32, height=24)
-    out = rasterize(means, quats, scales, opacities, features, camera, backend="cpu")
-    (out.image.sum() + out.alpha.sum()).backward()
-    return time.perf_counter() - t0
-
-
-def main() -> None:
-    """``make install``'s warm-up: compiles what is not cached and says how long it took."""
-    todo = len(uncompiled_kernels())
-    seconds = warm_up()
-    left = uncompiled_kernels()
-    state = "all cached" if not left else f"still not cached: {', '.join(left)}"
-    print(f"langfield kernels: {todo} compiled, {seconds:.1f} s; {state}")

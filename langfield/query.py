@@ -58,9 +58,8 @@ from encoders.protocols import TextEncoder, check_phrases
 from encoders.text_table import TableTextEncoder
 from langfield import gaussians as G
 from langfield.camera import Camera
-from langfield.field import LATENT_NORM_EPS, TEXT_TABLE_FILE, LanguageField, Render
+from langfield.constants import LATENT_NORM_EPS, TEXT_TABLE_FILE
 from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS
-from langfield.ply import write_gaussian_ply
 from langfield.raster import rasterize
 from querying.relevancy import (
     CANONICAL_PHRASES,
@@ -73,6 +72,7 @@ from querying.relevancy import (
 )
 
 if TYPE_CHECKING:
+    from langfield.field import LanguageField, Render
     from langfield.scene import Scene
 
 __all__ = [
@@ -187,7 +187,7 @@ def text_encoder_for(
     folder from ``langfield export clip``); else the reference in ``field.meta["text_encoder"]``:
 
     - ``{"kind": "table", "path": ...}``: the scene's phrase table. A saved field keeps a copy beside
-      field.json (:data:`langfield.field.TEXT_TABLE_FILE`), used first; else the recorded path.
+      field.json (:data:`langfield.constants.TEXT_TABLE_FILE`), used first; else the recorded path.
     - ``{"kind": "clip-onnx", "path": ...}``: an ONNX CLIP model folder (``OnnxClipEncoder``).
 
     A field that records none falls back to the ``text_embeddings.npz`` of the scene it was trained on.
@@ -335,12 +335,7 @@ class _Shared:
         if isinstance(key, Camera):
             return key
         if self.scene is None:
-            from langfield.scene import load_scene
-
-            path = self.field.meta.get("scene")
-            if not path:
-                raise ValueError(f"camera {key!r}: the field records no scene; pass a Camera or scene=")
-            self.scene = load_scene(path, **(self.field.meta.get("scene_args") or {}))
+            self.scene = self.field.trained_scene(remedy=f"camera {key!r}: pass a Camera or scene=")
         return self.scene.camera(key)
 
     def gaussian_inputs(self) -> tuple[Tensor, ...]:
@@ -591,14 +586,7 @@ class Query:
         Raises:
             EmptySelectionError: nothing matches.
         """
-        idx = self._nonempty_selection()
-        field = self._shared.field
-        splats = nn.ParameterDict(
-            {k: nn.Parameter(v.detach()[idx], requires_grad=False) for k, v in field.splats.items()}
-        )
-        return LanguageField(
-            splats, field.color, dict(field.meta), field.language, field.decoder, field.codebook
-        )
+        return self._shared.field.select(self._nonempty_selection())
 
     def render(self, camera: CameraKey) -> Render:
         """Renders the selected Gaussians alone (:meth:`subfield`) from ``camera``.
@@ -615,23 +603,7 @@ class Query:
         Raises:
             EmptySelectionError: nothing matches.
         """
-        idx = self._nonempty_selection()
-        field = self._shared.field
-        with torch.no_grad():
-            means = field.splats["means"].detach()[idx]
-            rgb = field.color.bake_dc(means).numpy()
-            quats = G.quats_normalized(field.splats).detach()[idx].numpy()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_gaussian_ply(
-            path,
-            means.numpy(),
-            np.clip(rgb, 0.0, 1.0),
-            field.splats["opacity_logits"].detach()[idx].numpy(),
-            field.splats["log_scales"].detach()[idx].numpy(),
-            quats,
-        )
-        return path
+        return self._shared.field.export_ply(path, self._nonempty_selection())
 
     # -------------------------------------------------------- helpers
 

@@ -15,6 +15,7 @@ import torch
 import langfield
 import langfield.kernels
 import langfield.trainer
+import langfield.warmup
 from langfield import LanguageField, TrainConfig, load_scene
 from langfield.cli import build_parser, main
 from langfield.field_meta import FieldFileError
@@ -378,6 +379,6 @@ def test_the_first_compilation_is_announced_once(monkeypatch, capsys) -> None:
 
 
 def test_every_kernel_is_cached_after_the_warm_up() -> None:
-    langfield.kernels.warm_up()
+    langfield.warmup.warm_up()
     assert len(langfield.kernels._dispatchers()) >= 9
     assert langfield.kernels.uncompiled_kernels() == []

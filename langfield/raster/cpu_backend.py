@@ -32,8 +32,8 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
+from langfield.kernels import configure_numba_threads
 from langfield.raster.binning import TILE_SIZE
-from langfield.raster.cpu_geometry import configure_numba_threads
 
 configure_numba_threads()
 

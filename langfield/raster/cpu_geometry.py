@@ -24,29 +24,17 @@ the reference's ``torch.where`` gives them.
 from __future__ import annotations
 
 import math
-import os
 
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
 from torch import Tensor
 
+from langfield.kernels import configure_numba_threads
 from langfield.raster.binning import ALPHA_MIN, Q_MARGIN, TILE_SIZE
 from langfield.raster.projection import EPS_2D, NEAR_PLANE, Projected, tangent_limits
 
 _QUAT_NORM2_MIN = 1e-24  # as quat_to_rotmat's clamp
-
-
-def configure_numba_threads() -> None:
-    """Chooses numba's workqueue threading layer unless the user set NUMBA_THREADING_LAYER.
-
-    numba's OpenMP layer keeps its threads spinning after each kernel, and they fight PyTorch's own
-    OpenMP threads for the 2 cores: every torch op right after a kernel ran ~50x slower. The workqueue
-    layer parks its threads instead.
-    """
-    if "NUMBA_THREADING_LAYER" not in os.environ:
-        numba.config.THREADING_LAYER = "workqueue"
 
 
 configure_numba_threads()

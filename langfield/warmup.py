@@ -1,0 +1,44 @@
+"""``make install``'s warm-up: every CPU kernel compiled (or loaded) once, ahead of the first run
+(:mod:`langfield.kernels` says why)."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from langfield.camera import Camera
+from langfield.fields import ColorField
+from langfield.hashgrid import HashGridConfig
+from langfield.kernels import notice_once, uncompiled_kernels
+from langfield.raster import rasterize
+
+__all__ = ["main", "warm_up"]
+
+
+def warm_up() -> float:
+    """Compiles (or loads) every kernel by rendering a few Gaussians forward and backward with the
+    ``cpu`` backend and a hash-grid colour field, as training does. Returns the seconds it took."""
+    t0 = time.perf_counter()
+    notice_once()
+    generator = torch.Generator().manual_seed(0)
+    n = 64
+    means = (torch.rand(n, 3, generator=generator) - 0.5).requires_grad_(True)
+    quats = torch.randn(n, 4, generator=generator).requires_grad_(True)
+    scales = torch.full((n, 3), 0.05).requires_grad_(True)
+    opacities = torch.full((n,), 0.5).requires_grad_(True)
+    color = ColorField(HashGridConfig(n_levels=2, log2_table_size=8), torch.zeros(3), 1.0)
+    features = color(means, torch.nn.functional.normalize(means, dim=-1))
+    camera = Camera.look_at(eye=(0, -2, 0.5), target=(0, 0, 0), width=32, height=24)
+    out = rasterize(means, quats, scales, opacities, features, camera, backend="cpu")
+    (out.image.sum() + out.alpha.sum()).backward()
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    """``make install``'s warm-up: compiles what is not cached and says how long it took."""
+    todo = len(uncompiled_kernels())
+    seconds = warm_up()
+    left = uncompiled_kernels()
+    state = "all cached" if not left else f"still not cached: {', '.join(left)}"
+    print(f"langfield kernels: {todo} compiled, {seconds:.1f} s; {state}")
