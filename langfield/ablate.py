@@ -120,11 +120,11 @@ def run_case(
         "depth_abs_rel": None if depth is None else depth["abs_rel"],
         "floaters": None if floaters is None else floaters["floaters"],
         "depth_agreement": None if agreement is None else agreement["agreement"],
-        "train_seconds": field.meta["train_seconds"],
-        "iterations": field.meta["iterations"],
-        "ms_per_iteration": 1000 * field.meta["train_seconds"] / max(field.meta["iterations"], 1),
+        "train_seconds": field.meta.train_seconds,
+        "iterations": field.meta.iterations,
+        "ms_per_iteration": 1000 * field.meta.train_seconds / max(field.meta.iterations, 1),
         "num_gaussians": field.num_gaussians,
-        "lop_removed": sum(r["removed"] for r in field.meta.get("lop") or []),
+        "lop_removed": field.meta.lop_removed,
     }
 
 

@@ -31,8 +31,8 @@ def with_latents(field: LanguageField, latents: Tensor) -> LanguageField:
     splats = nn.ParameterDict(dict(field.splats))
     splats["lang"] = nn.Parameter(latents.reshape(len(latents), LANGUAGE_CHANNELS).detach().clone())
     meta = dict(field.meta)
-    if meta.get("language"):  # field.json then says what the latents are
-        meta["language"] = {**meta["language"], "features": "per-gaussian"}
+    if field.meta.language:  # field.json then says what the latents are
+        meta["language"] = {**field.meta.language, "features": "per-gaussian"}
     return LanguageField(splats, field.color, meta, None, field.decoder, field.codebook)
 
 

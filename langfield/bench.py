@@ -291,9 +291,9 @@ def language_overhead(
         for name, language in (("rgb_only", False), ("with_language", True)):
             cfg = TrainConfig(iterations=iterations, seed=seed, language=language)
             field = train(scene, cfg, progress=False)
-            times[name].append(1000 * field.meta["train_seconds"] / iterations)
-            if language and field.meta.get("language"):
-                result["autoencoder_seconds"] = field.meta["language"]["autoencoder_stats"]["seconds"]
+            times[name].append(1000 * field.meta.train_seconds / iterations)
+            if language and field.meta.language:
+                result["autoencoder_seconds"] = field.meta.language["autoencoder_stats"]["seconds"]
     for name, values in times.items():
         result[f"{name}_ms_per_iteration"] = float(np.median(values))
     # Each pair ran back to back, so its ratio sees one machine state; the median pair is the figure.
@@ -314,10 +314,10 @@ def lad_lop_overhead(scene: Scene, iterations: int = 1000, seed: int = 0) -> dic
     result: dict[str, float] = {}
     for name, extra in (("plain", {"depth": False, "lop": False}), ("lad_lop", {})):
         field = train(scene, TrainConfig(iterations=iterations, seed=seed, **extra), progress=False)
-        result[f"{name}_ms_per_iteration"] = 1000 * field.meta["train_seconds"] / iterations
+        result[f"{name}_ms_per_iteration"] = 1000 * field.meta.train_seconds / iterations
         if name == "lad_lop":
-            result["lop_removed"] = sum(r["removed"] for r in field.meta.get("lop") or [])
-            result["depth"] = field.meta.get("depth") is not None
+            result["lop_removed"] = field.meta.lop_removed
+            result["depth"] = field.meta.depth is not None
     result["ratio"] = result["lad_lop_ms_per_iteration"] / result["plain_ms_per_iteration"]
     return result
 

@@ -32,7 +32,7 @@ from encoders.autoencoder import AutoencoderConfig, LanguageDecoder, decoder_sta
 from langfield import gaussians as G
 from langfield.camera import Camera
 from langfield.constants import LATENT_NORM_EPS, TEXT_TABLE_FILE
-from langfield.field_meta import FieldFileError, check_field_meta, check_tensors
+from langfield.field_meta import FieldFileError, FieldMeta, check_field_meta, check_tensors
 from langfield.fields import ColorField
 from langfield.hashgrid import HashGridConfig
 from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
@@ -118,7 +118,7 @@ class LanguageField(nn.Module):
         super().__init__()
         self.splats = splats
         self.color = color
-        self.meta = meta
+        self.meta = meta  # a FieldMeta (the setter wraps a plain dict)
         self.language = language
         self.decoder = decoder
         self.codebook = codebook  # checked by the setter
@@ -231,7 +231,7 @@ class LanguageField(nn.Module):
     @property
     def background(self) -> Tensor:
         """[3] colour behind the Gaussians (white for scenes whose images had alpha, else black)."""
-        return torch.tensor(self.meta.get("background") or [0.0, 0.0, 0.0], dtype=torch.float32)
+        return torch.tensor(self.meta.background, dtype=torch.float32)
 
     def render(
         self,
@@ -258,7 +258,7 @@ class LanguageField(nn.Module):
                 same Gaussians (a training step's virtual view): the grid is then read and
                 differentiated once, not once per view.
         """
-        backend = backend or self.meta.get("backend", "auto")
+        backend = backend or self.meta.backend
         means = self.splats["means"]
         quats = self.splats["quats"]
         scales = G.scales(self.splats)
@@ -332,6 +332,15 @@ class LanguageField(nn.Module):
         """
         return make_query(self, phrases, text_encoder, scene=scene)
 
+    @property
+    def meta(self) -> FieldMeta:
+        """What field.json records (:class:`~langfield.field_meta.FieldMeta`)."""
+        return self._meta
+
+    @meta.setter
+    def meta(self, value: dict[str, Any]) -> None:
+        self._meta = value if isinstance(value, FieldMeta) else FieldMeta(value)
+
     def trained_scene(self, path: str | Path | None = None, remedy: str = "pass the scene folder") -> Scene:
         """The scene the field was trained on (``path`` if given, else the folder ``field.json``
         records), loaded as for training: with the resolution and split recorded in ``scene_args``.
@@ -339,11 +348,11 @@ class LanguageField(nn.Module):
         Raises:
             ValueError: no ``path`` and the field records none (the message ends with ``remedy``).
         """
-        where = path or self.meta.get("scene")
+        where = path or self.meta.scene
         if not where:
             source = f"{self.folder}/field.json" if self.folder is not None else "the field"
             raise ValueError(f"{source} names no scene; {remedy}")
-        return load_scene(where, **(self.meta.get("scene_args") or {}))
+        return load_scene(where, **self.meta.scene_args)
 
     def select(self, index: Tensor) -> LanguageField:
         """The field restricted to the Gaussians at ``index`` (``[K]`` long): the same colour and
@@ -445,7 +454,7 @@ class LanguageField(nn.Module):
     def _text_table(self) -> Path | None:
         """The phrase table to copy beside field.json: this field's copy if it was loaded with one,
         else the table ``meta["text_encoder"]`` names; None if the encoder is not a table."""
-        ref = self.meta.get("text_encoder")
+        ref = self.meta.text_encoder
         if not ref or ref.get("kind") != "table":
             return None
         if self.folder is not None and (self.folder / TEXT_TABLE_FILE).is_file():
@@ -479,14 +488,14 @@ class LanguageField(nn.Module):
             meta = json.loads(meta_path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise FieldFileError(f"{meta_path}: not valid JSON ({err})") from err
-        check_field_meta(meta, meta_path, READABLE_VERSIONS)
-        if meta.get("tensors_sha256") and meta["tensors_sha256"] != _sha256(tensors_path):
+        meta = FieldMeta(check_field_meta(meta, meta_path, READABLE_VERSIONS))
+        if meta.tensors_sha256 and meta.tensors_sha256 != _sha256(tensors_path):
             raise FieldFileError(
                 f"{tensors_path}: checksum differs from {meta_path}; the save was interrupted"
             )
         table_path = out / TEXT_TABLE_FILE
-        if meta.get("text_table_sha256") and table_path.is_file():
-            if meta["text_table_sha256"] != _sha256(table_path):
+        if meta.text_table_sha256 and table_path.is_file():
+            if meta.text_table_sha256 != _sha256(table_path):
                 raise FieldFileError(
                     f"{table_path}: checksum differs from {meta_path}; the save was interrupted"
                 )
@@ -496,7 +505,7 @@ class LanguageField(nn.Module):
             raise FieldFileError(f"{tensors_path}: not a readable safetensors file ({err})") from err
         color = build_color_field(meta)
         language = decoder = None
-        spec = meta.get("language")
+        spec = meta.language
         if spec:
             language = build_language_heads(meta) if spec["features"] == "hashgrid" else None
             try:
@@ -598,9 +607,9 @@ def _expected_shapes(
     return shapes
 
 
-def build_color_field(meta: dict[str, Any]) -> ColorField:
-    """A ColorField of the shape recorded in ``meta["color_field"]``."""
-    spec = meta["color_field"]
+def build_color_field(meta: FieldMeta) -> ColorField:
+    """A ColorField of the shape recorded in ``meta.color_field``."""
+    spec = meta.color_field
     return ColorField(
         HashGridConfig(**spec["grid"]),
         torch.tensor(spec["center"], dtype=torch.float32),
@@ -621,9 +630,9 @@ def _same_cells(a, b) -> bool:
     )
 
 
-def build_language_heads(meta: dict[str, Any]) -> LanguageHeads:
+def build_language_heads(meta: FieldMeta) -> LanguageHeads:
     """Hash-grid language heads of the shape recorded in ``meta`` (they share the colour grid's box)."""
-    spec, box = meta["language"], meta["color_field"]
+    spec, box = meta.language, meta.color_field
     return LanguageHeads(
         HashGridConfig(**spec["grid"]),
         torch.tensor(box["center"], dtype=torch.float32),

@@ -1,4 +1,5 @@
-"""What a field folder's ``field.json`` must hold to be loaded, checked key by key (FORMAT.md).
+"""What a field folder's ``field.json`` holds (:class:`FieldMeta`) and must hold to be loaded, checked
+key by key (FORMAT.md).
 
 :func:`check_field_meta` runs before any tensor is read, and :func:`check_tensors` compares
 ``field.safetensors`` with the shapes the modules that ``field.json`` describes expect; each problem is
@@ -14,11 +15,12 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from torch import Tensor
 
 from langfield.hashgrid import HashGridConfig
 
-__all__ = ["FieldFileError", "check_field_meta", "check_tensors"]
+__all__ = ["FieldFileError", "FieldMeta", "check_field_meta", "check_tensors"]
 
 LANGUAGE_FEATURES = ("hashgrid", "per-gaussian")
 TEXT_ENCODER_KINDS = ("table", "clip-onnx")
@@ -27,6 +29,89 @@ BACKEND_NAMES = ("auto", "torch", "cpu")
 
 class FieldFileError(ValueError):
     """A field folder that cannot be loaded; the message names the file and the key."""
+
+
+class FieldMeta(dict):
+    """What ``field.json`` records: the JSON object itself (so it is written back key for key, and
+    ``meta["config"]`` reads as before), with a typed property for each key the library reads.
+
+    Library code reads the properties, never the keys: the defaults of an older or partial file are
+    then decided here, once.
+    """
+
+    @property
+    def backend(self) -> str:
+        """The rasterizer backend the field was trained with ("auto" when not recorded)."""
+        return self.get("backend", "auto")
+
+    @property
+    def background(self) -> list[float]:
+        """The RGB behind the Gaussians (black when not recorded)."""
+        return list(self.get("background") or (0.0, 0.0, 0.0))
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """``[2, 3]`` float64, the scene box (min, max) the hash grids cover."""
+        return np.asarray(self["bounds"], dtype=np.float64)
+
+    @property
+    def scene(self) -> str | None:
+        """The scene folder the field was trained on, if recorded."""
+        return self.get("scene") or None
+
+    @property
+    def scene_args(self) -> dict[str, Any]:
+        """How the scene was loaded for training (``load_scene``'s resolution and split arguments)."""
+        return dict(self.get("scene_args") or {})
+
+    @property
+    def text_encoder(self) -> dict[str, Any] | None:
+        """``{"kind": "table" | "clip-onnx", "path": ...}``, the encoder of the field's phrases."""
+        return self.get("text_encoder")
+
+    @property
+    def color_field(self) -> dict[str, Any]:
+        """The colour field's shape: its hash grid, box, MLP width and frequencies."""
+        return self["color_field"]
+
+    @property
+    def language(self) -> dict[str, Any] | None:
+        """The language part's shape (features, hidden width, grid, autoencoder, codebook), or None
+        for a field without language."""
+        return self.get("language") or None
+
+    @property
+    def train_seconds(self) -> float | None:
+        """Wall-clock seconds of the training (None for a field that was not trained, e.g. aggregated)."""
+        return self.get("train_seconds")
+
+    @property
+    def iterations(self) -> int | None:
+        return self.get("iterations")
+
+    @property
+    def iterations_per_second(self) -> float | None:
+        return self.get("iterations_per_second")
+
+    @property
+    def lop_removed(self) -> int:
+        """Gaussians removed by the outlier pruning over the whole training (0 when none ran)."""
+        return sum(int(r["removed"]) for r in self.get("lop") or [])
+
+    @property
+    def tensors_sha256(self) -> str | None:
+        """The checksum of field.safetensors written beside it (None for a field never saved)."""
+        return self.get("tensors_sha256")
+
+    @property
+    def text_table_sha256(self) -> str | None:
+        """The checksum of the phrase table copied beside it, if one was."""
+        return self.get("text_table_sha256")
+
+    @property
+    def depth(self) -> dict[str, Any] | None:
+        """How the depth prior was used (``{"lad", "kind"}``), or None when training had none."""
+        return self.get("depth")
 
 
 def _is_number(value: Any) -> bool:

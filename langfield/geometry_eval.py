@@ -110,7 +110,7 @@ def count_floaters(field: LanguageField, scene: Scene, tolerance: float = FLOATE
         return None
     from langfield.synthetic import distance_to_surfaces
 
-    bounds = np.asarray(field.meta["bounds"], dtype=np.float64)
+    bounds = field.meta.bounds
     tol = float(tolerance * np.linalg.norm(bounds[1] - bounds[0]))
     means = field.splats["means"].detach().numpy()
     dist = distance_to_surfaces(scene.root, means)
@@ -147,7 +147,7 @@ def selection_scores(
         return None
     from langfield.synthetic import distances_to_objects
 
-    bounds = np.asarray(field.meta["bounds"], dtype=np.float64)
+    bounds = field.meta.bounds
     tol = float(tolerance * np.linalg.norm(bounds[1] - bounds[0]))
     means = field.splats["means"].detach().numpy()
     objects, dist = distances_to_objects(scene.root, means, level="whole")

@@ -184,7 +184,7 @@ def text_encoder_for(
     """The text encoder that embeds phrases in the space of ``field``'s language features.
 
     In order: ``text_encoder`` if given (an encoder, a ``text_embeddings.npz`` file, or a CLIP model
-    folder from ``langfield export clip``); else the reference in ``field.meta["text_encoder"]``:
+    folder from ``langfield export clip``); else the reference in ``field.meta.text_encoder``:
 
     - ``{"kind": "table", "path": ...}``: the scene's phrase table. A saved field keeps a copy beside
       field.json (:data:`langfield.constants.TEXT_TABLE_FILE`), used first; else the recorded path.
@@ -199,9 +199,9 @@ def text_encoder_for(
         return text_encoder
     if text_encoder is not None:
         return _encoder_from_path(Path(text_encoder))
-    ref = field.meta.get("text_encoder")
+    ref = field.meta.text_encoder
     if ref is None:
-        scene = field.meta.get("scene")
+        scene = field.meta.scene
         table = Path(scene) / TEXT_TABLE_FILE if scene else None
         if table is not None and table.is_file():
             return TableTextEncoder(table)
@@ -369,7 +369,7 @@ class _Shared:
         if self.last_render is not None and self.last_render[0] is camera:
             return self.last_render[1:]
         with torch.no_grad():
-            backend = self.field.meta.get("backend", "auto")
+            backend = self.field.meta.backend
             out = rasterize(*self.gaussian_inputs(), camera, backend=backend)  # background 0, as render()
         rendered = out.image.reshape(*out.image.shape[:2], N_LEVELS, LATENT_DIM).permute(2, 0, 1, 3)
         self.last_render = (camera, rendered, out.alpha)

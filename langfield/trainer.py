@@ -749,7 +749,7 @@ def train(
     field.meta["training_length"] = length
     use_lop = cfg.lop and targets is not None and cfg.lop_every > 0
     lop_rounds: list[dict[str, Any]] = []
-    bounds = np.asarray(field.meta["bounds"])
+    bounds = field.meta.bounds
     extent = float(np.linalg.norm(bounds[1] - bounds[0]) / 2)
     optimizers = make_optimizers(field, extent, cfg)
     means_lr0 = optimizers["means"].param_groups[0]["lr"]
@@ -1098,12 +1098,12 @@ def _prune_outliers(
 def summary_line(field: LanguageField, test_psnr: float | None) -> str:
     """The one-line summary printed at the end of training."""
     m = field.meta
-    ips = m.get("iterations_per_second")
+    ips = m.iterations_per_second
     parts = [
-        f"trained {m.get('iterations', 0)} iterations in {m.get('train_seconds', 0.0):.1f} s",
+        f"trained {m.iterations or 0} iterations in {m.train_seconds or 0.0:.1f} s",
         f"{ips:.1f} it/s" if ips else "",
         f"{field.num_gaussians} Gaussians",
-        f"backend {m.get('backend')}",
+        f"backend {m.backend}",
         f"novel-view PSNR {test_psnr:.2f} dB" if test_psnr is not None else "no test views",
     ]
     return ", ".join(p for p in parts if p)

@@ -306,3 +306,25 @@ def test_shared_grid_features_give_the_same_renders_and_gradients(scene, saved) 
         # about 500 differs by 3e-5 where the grid's rows are summed in another order).
         scale = float(grads[0][name].abs().max())
         assert torch.allclose(grads[0][name], grads[1][name], rtol=1e-5, atol=1e-6 * scale + 1e-7), name
+
+
+def test_meta_is_typed_and_written_back_key_for_key(field, saved) -> None:
+    """field.meta is a FieldMeta whatever it is given; its properties read what field.json holds, with
+    the defaults of a partial file decided in one place; saving writes the same keys in the same order."""
+    from langfield.field_meta import FieldMeta
+
+    loaded = LanguageField.load(saved)
+    assert isinstance(field.meta, FieldMeta) and isinstance(loaded.meta, FieldMeta)
+    assert np.array_equal(loaded.meta.bounds, np.asarray(field.meta["bounds"], dtype=np.float64))
+    assert loaded.meta.backend == field.meta["backend"]
+    assert loaded.meta.iterations == field.meta["iterations"] and loaded.meta.train_seconds > 0
+    assert loaded.meta.tensors_sha256 == json.loads((saved / "field.json").read_text())["tensors_sha256"]
+    written = list(json.loads((saved / "field.json").read_text()))
+    assert [k for k in written if k in field.meta] == [k for k in field.meta if k in written]
+    field2 = LanguageField(field.splats, field.color, {"bounds": [[0, 0, 0], [1, 1, 1]]})
+    assert isinstance(field2.meta, FieldMeta)
+    assert field2.meta.backend == "auto" and field2.meta.background == [0.0, 0.0, 0.0]
+    assert field2.meta.scene is None and field2.meta.scene_args == {} and field2.meta.language is None
+    assert field2.meta.lop_removed == 0 and field2.meta.train_seconds is None
+    field2.meta["lop"] = [{"removed": 3}, {"removed": 4}]
+    assert field2.meta.lop_removed == 7
