@@ -9,7 +9,7 @@ DEMO_OUT ?= demo_out
 LOCK ?= locks/main.txt
 EXPORT_LOCK ?= locks/export.txt
 
-.PHONY: install system test test-export test-latest lint demo lock clean
+.PHONY: install system test test-fast test-export test-latest lint demo lock clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -19,7 +19,7 @@ $(BIN)/python:
 $(VENV)/.installed: $(BIN)/python pyproject.toml $(LOCK)
 	$(BIN)/pip install -c $(LOCK) "$(TORCH)"
 	$(BIN)/pip install -c $(LOCK) -e ".[test]"
-	$(BIN)/python -c "from langfield.warmup import main; main()"
+	$(BIN)/python -c "from langfield.cli.warmup import main; main()"
 	touch $@
 
 install: system $(VENV)/.installed
@@ -34,6 +34,10 @@ lint: install
 
 test: lint
 	$(BIN)/python -m pytest -q
+
+# The tests that train nothing end to end: about a minute, for quick checks while editing.
+test-fast: lint
+	$(BIN)/python -m pytest -q -m "not slow"
 
 # The exporters (langfield export clip|sam|depth) need torch 2.14's ONNX exporter, open_clip,
 # segment-anything and transformers: a second venv, so that .venv keeps its torch. Runs the tests

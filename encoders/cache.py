@@ -1,4 +1,4 @@
-"""The per-view language feature cache: LangSplat's ``language_features/`` layout (FORMAT.md).
+"""The per-view language feature cache: LangSplat's ``language_features/`` layout (docs/format.md).
 
 One view's cache is two files:
 
@@ -176,7 +176,7 @@ def read_feature_cache(
     expected_hw: tuple[int, int] | None = None,
     dim: int | None = None,
 ) -> FeatureCache:
-    """Read and validate one view's cache (FORMAT.md ``language_features/``).
+    """Read and validate one view's cache (docs/format.md ``language_features/``).
 
     Accepted beyond the plain 3-level layout, each as LangSplat writes it:
 

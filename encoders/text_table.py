@@ -1,7 +1,7 @@
-"""A text encoder that answers phrases from a scene's ``text_embeddings.npz`` (FORMAT.md).
+"""A text encoder that answers phrases from a scene's ``text_embeddings.npz`` (docs/format.md).
 
 Scenes whose mask features were not made by a real CLIP model (the synthetic room, tests) cannot be
-queried with CLIP's text tower: their features live in another space. FORMAT.md lets such a scene ship
+queried with CLIP's text tower: their features live in another space. docs/format.md lets such a scene ship
 ``text_embeddings.npz``, phrase -> embedding in the space of its features, including the canonical
 phrases of the relevancy score (``object``, ``things``, ``stuff``, ``texture``; LERF, LangSplat).
 :class:`TableTextEncoder` serves that table through the :class:`~encoders.protocols.TextEncoder`
@@ -185,6 +185,6 @@ def _load_table(path: Path) -> dict[str, np.ndarray]:
     if missing:
         raise TextTableError(
             f"{path}: missing the canonical phrase(s) {', '.join(repr(p) for p in missing)} that relevancy "
-            f"compares every query against (FORMAT.md, text_embeddings.npz)"
+            f"compares every query against (docs/format.md, text_embeddings.npz)"
         )
     return table

@@ -7,7 +7,8 @@ Rows, from the field as trained to the query pipeline's ceiling:
 - field: the field's rendered latents, decoded (what `langfield eval` scores); then the same latents
   decoded as they are (the paper's reading) and read as their nearest codebook entries;
 - aggregated latents, trained geometry: every Gaussian's latents the rendering-weighted mean of the
-  training views' mask latents (langfield.aggregate, no training), rendered with the trained Gaussians;
+  training views' mask latents (langfield.training.aggregate, no training), rendered with the trained
+  Gaussians;
 - field, best level: the same relevancy maps, each query given the level whose mask scores best
   instead of the automatic choice;
 - true latents, trained geometry: every Gaussian carries the autoencoded features of the object whose
@@ -31,10 +32,10 @@ import torch
 
 from encoders.protocols import LEVELS
 from langfield import LanguageField, TrainConfig, load_scene
-from langfield.aggregate import aggregate_latents, with_latents
-from langfield.evaluate import masked_pixels, score_queries, true_features
+from langfield.eval.evaluate import masked_pixels, score_queries, true_features
 from langfield.query import fill_empty, text_encoder_for
-from langfield.trainer import language_targets
+from langfield.training.aggregate import aggregate_latents, with_latents
+from langfield.training.trainer import language_targets
 from querying.evaluation import mask_iou, summarize_queries
 from querying.relevancy import CANONICAL_PHRASES, relevancy, relevancy_mask
 

@@ -1,6 +1,6 @@
 """LanguageField: trained Gaussians with their neural colour field; render, save, load.
 
-On disk (FORMAT.md): ``field.safetensors`` (every tensor, no pickle; from format 2 also the codebook,
+On disk (docs/format.md): ``field.safetensors`` (every tensor, no pickle; from format 2 also the codebook,
 ``codebook.{level}``), ``field.json`` (config, format version, bounds, training views, text-encoder
 reference, timings and the checksum of the tensors file), ``gaussians.ply`` (standard 3DGS) and,
 when the text encoder is a scene's phrase table, a copy of it
@@ -8,7 +8,7 @@ when the text encoder is a scene's phrase table, a copy of it
 completely into a staging folder beside the output folder, then moved into place with ``field.json``
 last; ``field.json`` names the SHA-256 of the tensors and of the table it belongs to, so a field
 interrupted half-way through a save never loads silently mixed. Loading checks field.json key by key
-and the tensors against it (:mod:`langfield.field_meta`).
+and the tensors against it (:mod:`langfield.io.field_meta`).
 """
 
 from __future__ import annotations
@@ -29,17 +29,17 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
 from encoders.autoencoder import AutoencoderConfig, LanguageDecoder, decoder_state, load_decoder
-from langfield import gaussians as G
 from langfield.camera import Camera
 from langfield.constants import LATENT_NORM_EPS, TEXT_TABLE_FILE
-from langfield.field_meta import FieldFileError, FieldMeta, check_field_meta, check_tensors
-from langfield.fields import ColorField
-from langfield.hashgrid import HashGridConfig
-from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
-from langfield.ply import write_gaussian_ply
+from langfield.io.field_meta import FieldFileError, FieldMeta, check_field_meta, check_tensors
+from langfield.io.ply import write_gaussian_ply
+from langfield.io.scene import Scene, load_scene
+from langfield.model import gaussians as G
+from langfield.model.colour import ColorField
+from langfield.model.hashgrid import HashGridConfig
+from langfield.model.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
 from langfield.query import Query, make_query
 from langfield.raster import Backend, rasterize, rasterize_with_second_pass
-from langfield.scene import Scene, load_scene
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -57,7 +57,7 @@ class GridFeatures(NamedTuple):
     """The colour grid read at the Gaussians' centres, shared by every render of one set of means.
 
     Attributes:
-        corners: the cell look-up ``(rows, frac)`` of :meth:`langfield.hashgrid.HashGrid.corners`.
+        corners: the cell look-up ``(rows, frac)`` of :meth:`langfield.model.hashgrid.HashGrid.corners`.
         features: [N, L F] interpolated grid features (the colour MLP's view-independent input).
     """
 
@@ -334,7 +334,7 @@ class LanguageField(nn.Module):
 
     @property
     def meta(self) -> FieldMeta:
-        """What field.json records (:class:`~langfield.field_meta.FieldMeta`)."""
+        """What field.json records (:class:`~langfield.io.field_meta.FieldMeta`)."""
         return self._meta
 
     @meta.setter
@@ -364,7 +364,7 @@ class LanguageField(nn.Module):
 
     def export_ply(self, path: str | Path, index: Tensor | None = None) -> Path:
         """Writes the Gaussians (those at ``index``, default all) as a standard 3DGS PLY
-        (:mod:`langfield.ply`), atomically; the colour field is baked into the degree-0 coefficient at
+        (:mod:`langfield.io.ply`), atomically; the colour field is baked into the degree-0 coefficient at
         each centre, clipped to [0, 1]. Missing parent folders are made."""
         splats = {k: v.detach() for k, v in self.splats.items()}
         if index is not None:

@@ -4,7 +4,7 @@ numba compiles the rasterizer's and the hash grid's kernels the first time a pro
 keeps the machine code on disk (``cache=True``, in ``__pycache__`` beside the sources); later processes
 load it in well under a second. The first compilation takes about a minute on two cores, which a user
 would otherwise see as an unexplained pause in their first ``langfield train``. :func:`notice_once`
-prints one line before it; :func:`langfield.warmup.main` (run by ``make install``) compiles every
+prints one line before it; :func:`langfield.cli.warmup.main` (run by ``make install``) compiles every
 kernel on a tiny input so that the first real run starts at once.
 
 A leaf module: the rasterizer and the hash grid call :func:`notice_once`, so it finds the kernel
@@ -20,7 +20,11 @@ import sys
 __all__ = ["KERNEL_MODULES", "configure_numba_threads", "notice_once", "uncompiled_kernels"]
 
 # The modules whose numba kernels are cached on disk.
-KERNEL_MODULES = ("langfield.raster.cpu_geometry", "langfield.raster.cpu_backend", "langfield.hashgrid_cpu")
+KERNEL_MODULES = (
+    "langfield.raster.cpu_geometry",
+    "langfield.raster.cpu_backend",
+    "langfield.model.hashgrid_cpu",
+)
 
 _noticed = False
 

@@ -56,10 +56,10 @@ from torch import Tensor, nn
 
 from encoders.protocols import TextEncoder, check_phrases
 from encoders.text_table import TableTextEncoder
-from langfield import gaussians as G
 from langfield.camera import Camera
 from langfield.constants import LATENT_NORM_EPS, TEXT_TABLE_FILE
-from langfield.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS
+from langfield.model import gaussians as G
+from langfield.model.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS
 from langfield.raster import rasterize
 from querying.relevancy import (
     CANONICAL_PHRASES,
@@ -73,7 +73,7 @@ from querying.relevancy import (
 
 if TYPE_CHECKING:
     from langfield.field import LanguageField, Render
-    from langfield.scene import Scene
+    from langfield.io.scene import Scene
 
 __all__ = [
     "DECODE_CHUNK",

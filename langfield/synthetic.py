@@ -2,7 +2,7 @@
 
 :func:`make_room` builds a small furnished room from Open3D primitives (boxes, cylinders), renders it
 by ray casting with Open3D's ``RaycastingScene`` (not with langfield's rasterizer, so the ground truth
-does not share its bugs) and writes a scene folder in the layout of ``FORMAT.md``:
+does not share its bugs) and writes a scene folder in the layout of docs/format.md:
 
 - ``images/``: textured, Lambert-shaded RGBA renders (2x2 supersampled); alpha 0 where rays miss,
   so the loader composites them on white;
@@ -12,7 +12,7 @@ does not share its bugs) and writes a scene folder in the layout of ``FORMAT.md`
 - ``text_embeddings.npz``: phrase -> embedding in the same stub space, with synonyms and the canonical
   phrases; ``segmentations/``: one mask per (view, whole-level object).
 
-Beside it, ``gt/`` holds what later checks compare against (not part of the FORMAT.md contract):
+Beside it, ``gt/`` holds what later checks compare against (not part of the docs/format.md contract):
 
 - ``gt/depth/<name>.npy``: float32 [H, W] true z-depth (distance along the viewing axis); **0 where the
   ray hits nothing** (background);
@@ -105,7 +105,7 @@ def make_room(
     n_test: int = 5,
     scale: float = 1.0,
 ) -> Path:
-    """Write the synthetic room scene folder (FORMAT.md layout plus ``gt/``).
+    """Write the synthetic room scene folder (docs/format.md layout plus ``gt/``).
 
     Args:
         out_dir: folder to write; created if missing, existing files are overwritten.

@@ -3,7 +3,7 @@
 The metrics are LangSplat's (``eval/evaluate_iou_loc.py``): per (view, phrase) pair the IoU of the
 mask of :func:`querying.relevancy.relevancy_mask` with the ground truth, and a localization hit
 (:func:`querying.relevancy.localization_hit`); mIoU and mAcc are their means over all pairs, as
-FORMAT.md's evaluation report states.
+docs/format.md's evaluation report states.
 
 Example:
     >>> records = [{"iou": 1.0, "hit": True}, {"iou": 0.5, "hit": False}]
@@ -51,7 +51,7 @@ def mask_iou(prediction: Tensor, target: Tensor) -> float:
 
 
 def query_record(maps: Tensor, gt_mask: Tensor) -> dict[str, float | bool]:
-    """Score one phrase in one view: the report's ``{"iou": .., "hit": ..}`` (FORMAT.md).
+    """Score one phrase in one view: the report's ``{"iou": .., "hit": ..}`` (docs/format.md).
 
     Args:
         maps: ``[L, H, W]`` relevancy maps of the phrase, one per level (:func:`relevancy`).
@@ -69,7 +69,7 @@ def query_record(maps: Tensor, gt_mask: Tensor) -> dict[str, float | bool]:
 
 
 def summarize_queries(records: Iterable[Mapping[str, float | bool]]) -> dict[str, float | None]:
-    """mIoU and mAcc over all (view, phrase) pairs (FORMAT.md, "Evaluation report").
+    """mIoU and mAcc over all (view, phrase) pairs (docs/format.md, "Evaluation report").
 
     For a report's ``views`` pass ``(q for v in views for q in v["queries"].values())``; every pair
     weighs the same, whatever its view.

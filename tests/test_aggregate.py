@@ -1,4 +1,4 @@
-"""Training-free language (langfield/aggregate.py): rendering-weighted means of the views' latents."""
+"""Training-free language (langfield/training/aggregate.py): rendering-weighted means of view latents."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from langfield import TrainConfig, load_scene
-from langfield.aggregate import aggregate_latents, with_latents
 from langfield.synthetic import make_room
-from langfield.trainer import build_field, language_targets
+from langfield.training.aggregate import aggregate_latents, with_latents
+from langfield.training.trainer import build_field, language_targets
 
 W, H = 40, 30
 

@@ -235,7 +235,7 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
 
 
 def test_time_to_quality_is_the_first_point_within_the_tolerance_of_the_last() -> None:
-    from langfield.bench import time_to_quality
+    from langfield.eval.bench import time_to_quality
 
     curve = [
         {"seconds": 10.0, "iterations": 100, "PSNR": 15.0},
@@ -253,7 +253,7 @@ def test_time_to_quality_is_the_first_point_within_the_tolerance_of_the_last() -
 
 
 def test_tile_pairs_counts_each_tiles_list_times_its_pixels() -> None:
-    from langfield.bench import tile_pairs
+    from langfield.eval.bench import tile_pairs
 
     # 20x20 pixels: tiles of 16x16, 4x16, 16x4 and 4x4 pixels holding 1, 0, 2 and 3 Gaussians.
     offsets = torch.tensor([0, 1, 1, 3, 6])
@@ -261,9 +261,9 @@ def test_tile_pairs_counts_each_tiles_list_times_its_pixels() -> None:
 
 
 def test_raster_throughput_counts_the_pairs_the_reference_binning_lists() -> None:
-    from langfield import gaussians as G
-    from langfield.bench import cpu_peak_gflops, pair_flops, raster_throughput, tile_pairs
     from langfield.camera import Camera
+    from langfield.eval.bench import cpu_peak_gflops, pair_flops, raster_throughput, tile_pairs
+    from langfield.model import gaussians as G
     from langfield.raster.binning import bin_gaussians
     from langfield.raster.projection import project_gaussians
 
@@ -378,10 +378,10 @@ def test_train_flags_agree_with_train_config() -> None:
     import typing
 
     from langfield.cli import build_parser
-    from langfield.field_meta import LANGUAGE_FEATURES
-    from langfield.initialisation import INIT_METHODS
+    from langfield.io.field_meta import LANGUAGE_FEATURES
     from langfield.raster import BACKENDS
-    from langfield.trainer import CONFIG_FLAGS, LANGUAGE_DECODES, TrainConfig
+    from langfield.training.initialisation import INIT_METHODS
+    from langfield.training.trainer import CONFIG_FLAGS, LANGUAGE_DECODES, TrainConfig
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     options = {s: a for a in sub.choices["train"]._actions for s in a.option_strings}

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from langfield.camera import Camera
-from langfield.geometry_eval import depth_agreement, ray_lengths
+from langfield.eval.geometry import depth_agreement, ray_lengths
 
 W, H = 40, 30
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from langfield.depth_loss import (
+from langfield.training.lad import (
     GLOBAL_STD_RATIO,
     LAMBDA_SA,
     MIN_MASK_PIXELS,

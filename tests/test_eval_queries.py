@@ -1,4 +1,4 @@
-"""Text queries in the evaluation (langfield/evaluate.py): per (view, phrase) IoU and hit, mIoU, mAcc."""
+"""Text queries in the evaluation (langfield/eval/evaluate.py): per (view, phrase) IoU and hit, mIoU, mAcc."""
 
 from __future__ import annotations
 
@@ -18,10 +18,11 @@ from torch import Tensor, nn
 from encoders.autoencoder import LanguageDecoder
 from encoders.cache import read_feature_cache
 from langfield import LanguageField, TrainConfig, evaluate, load_scene
-from langfield.evaluate import write_report
-from langfield.geometry_eval import selection_scores
+from langfield.eval.evaluate import write_report
+from langfield.eval.geometry import selection_scores
+from langfield.io.field_meta import FieldMeta
 from langfield.synthetic import make_room
-from langfield.trainer import build_field, scene_bounds
+from langfield.training.trainer import build_field, scene_bounds
 
 W, H = 64, 48
 
@@ -221,7 +222,7 @@ class _SelectionField:
     """A field of points on the room's surfaces whose 3D query answers are set by the test."""
 
     def __init__(self, scene, means: np.ndarray, answers: dict[str, np.ndarray]) -> None:
-        self.meta = {"bounds": scene_bounds(scene, TrainConfig()).tolist()}
+        self.meta = FieldMeta({"bounds": scene_bounds(scene, TrainConfig()).tolist()})
         self.splats = {"means": torch.from_numpy(means).float()}
         self.decoder, self.has_language, self.answers = object(), True, answers
         self.queried: list[str] = []

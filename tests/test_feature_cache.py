@@ -1,4 +1,4 @@
-"""The language feature cache (FORMAT.md language_features/): reader, writer and eq. 1 builder."""
+"""The language feature cache (docs/format.md language_features/): reader, writer and eq. 1 builder."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ from safetensors.torch import load_file
 
 from langfield import Camera, LanguageField, TrainConfig, load_scene, train
 from langfield.field import FORMAT_VERSION
-from langfield.ply import SH_C0, read_gaussian_ply
+from langfield.io.ply import SH_C0, read_gaussian_ply
 from langfield.synthetic import make_room
 
 N = 500
@@ -278,7 +278,7 @@ def test_a_second_render_of_moved_gaussians_looks_their_cells_up_again(scene, sa
 
 
 def test_reused_rows_give_the_same_corners() -> None:
-    from langfield.hashgrid import HashGrid, HashGridConfig
+    from langfield.model.hashgrid import HashGrid, HashGridConfig
 
     grid = HashGrid(HashGridConfig(n_levels=6, log2_table_size=10, finest_resolution=64), torch.zeros(3), 1.0)
     x = torch.rand(50, 3) * 2 - 1
@@ -311,7 +311,7 @@ def test_shared_grid_features_give_the_same_renders_and_gradients(scene, saved) 
 def test_meta_is_typed_and_written_back_key_for_key(field, saved) -> None:
     """field.meta is a FieldMeta whatever it is given; its properties read what field.json holds, with
     the defaults of a partial file decided in one place; saving writes the same keys in the same order."""
-    from langfield.field_meta import FieldMeta
+    from langfield.io.field_meta import FieldMeta
 
     loaded = LanguageField.load(saved)
     assert isinstance(field.meta, FieldMeta) and isinstance(loaded.meta, FieldMeta)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from langfield.fields import ColorField, fibonacci_directions, frequency_encoding
-from langfield.hashgrid import HashGridConfig
+from langfield.model.colour import ColorField, fibonacci_directions, frequency_encoding
+from langfield.model.hashgrid import HashGridConfig
 
 CFG = HashGridConfig(n_levels=8, log2_table_size=12, base_resolution=4, finest_resolution=64)
 

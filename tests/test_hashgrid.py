@@ -7,7 +7,7 @@ import itertools
 import pytest
 import torch
 
-from langfield.hashgrid import HashGrid, HashGridConfig
+from langfield.model.hashgrid import HashGrid, HashGridConfig
 
 # Tiny grid: levels of 2, 3 and 5 cells; with 2^6 rows the first two are dense, the last hashed.
 TINY = HashGridConfig(

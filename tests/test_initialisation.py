@@ -1,4 +1,4 @@
-"""Start points from the training photos (langfield/initialisation.py)."""
+"""Start points from the training photos (langfield/training/initialisation.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import pytest
 
 import langfield as lf
 from langfield.camera import Camera
-from langfield.initialisation import (
+from langfield.synthetic import distance_to_surfaces, make_room
+from langfield.training.initialisation import (
     PlaneSweepConfig,
     _project,
     dense_points,
@@ -17,7 +18,6 @@ from langfield.initialisation import (
     plane_sweep,
     start_points,
 )
-from langfield.synthetic import distance_to_surfaces, make_room
 
 W, H = 96, 72
 
@@ -151,7 +151,7 @@ def test_start_points_fall_back_to_random_with_a_warning() -> None:
 
 
 def test_random_start_is_the_old_random_initialisation() -> None:
-    from langfield.gaussians import init_gaussians
+    from langfield.model.gaussians import init_gaussians
 
     cams, images = plane_views(z=2.0)
     bounds = np.array([[-3.0, -3.0, -4.0], [3.0, 3.0, -0.5]])

@@ -13,12 +13,12 @@ import pytest
 import torch
 
 import langfield
+import langfield.cli.warmup
 import langfield.kernels
-import langfield.trainer
-import langfield.warmup
+import langfield.training.trainer
 from langfield import LanguageField, TrainConfig, load_scene
 from langfield.cli import build_parser, main
-from langfield.field_meta import FieldFileError
+from langfield.io.field_meta import FieldFileError
 from langfield.synthetic import make_room
 
 W, H = 48, 36
@@ -43,8 +43,8 @@ def no_work(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("work was started before the input was checked")
 
-    monkeypatch.setattr(langfield.trainer, "language_targets", refuse)
-    monkeypatch.setattr(langfield.trainer, "build_field", refuse)
+    monkeypatch.setattr(langfield.training.trainer, "language_targets", refuse)
+    monkeypatch.setattr(langfield.training.trainer, "build_field", refuse)
 
 
 def copy_scene(scene_dir: Path, dest: Path) -> Path:
@@ -212,7 +212,7 @@ def test_a_damaged_test_view_cache_exits_2_before_work(scene_dir, tmp_path, caps
 
 def test_check_inputs_reads_every_view_once_without_keeping_test_images(scene_dir) -> None:
     scene = load_scene(scene_dir)
-    langfield.trainer.check_inputs(scene, TrainConfig(), progress=False)
+    langfield.training.trainer.check_inputs(scene, TrainConfig(), progress=False)
     assert set(scene._cache) <= set(scene.names("train"))
 
 
@@ -379,6 +379,6 @@ def test_the_first_compilation_is_announced_once(monkeypatch, capsys) -> None:
 
 
 def test_every_kernel_is_cached_after_the_warm_up() -> None:
-    langfield.warmup.warm_up()
+    langfield.cli.warmup.warm_up()
     assert len(langfield.kernels._dispatchers()) >= 9
     assert langfield.kernels.uncompiled_kernels() == []

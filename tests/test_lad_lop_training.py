@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from langfield.cli import main
-from langfield.depth_loss import LADTarget, depth_loss, lad_loss
+from langfield.eval.geometry import aligned_depth_error, count_floaters, depth_errors
 from langfield.field import LanguageField
-from langfield.geometry_eval import aligned_depth_error, count_floaters, depth_errors
-from langfield.scene import load_scene
+from langfield.io.scene import load_scene
 from langfield.synthetic import make_room
-from langfield.trainer import TrainConfig, train
+from langfield.training.lad import LADTarget, depth_loss, lad_loss
+from langfield.training.trainer import TrainConfig, train
 
 
 @pytest.fixture(scope="module")
@@ -160,7 +160,7 @@ def test_geometry_figures_on_the_synthetic_scene(trained, room):
 def test_every_ablation_case_changes_the_defaults():
     from dataclasses import replace
 
-    from langfield.ablate import CASES, DEFAULT_CASES
+    from langfield.eval.ablate import CASES, DEFAULT_CASES
 
     base = TrainConfig()
     assert set(DEFAULT_CASES) <= set(CASES)
@@ -172,8 +172,8 @@ def test_every_ablation_case_changes_the_defaults():
 def test_ablate_help_names_every_case():
     import argparse
 
-    from langfield.ablate import CASES
     from langfield.cli import build_parser
+    from langfield.eval.ablate import CASES
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     cases_help = next(a.help for a in sub.choices["ablate"]._actions if a.dest == "cases")
@@ -182,7 +182,7 @@ def test_ablate_help_names_every_case():
 
 
 def test_cases_that_would_train_full_again_are_skipped(room):
-    from langfield.ablate import run_ablation
+    from langfield.eval.ablate import run_ablation
 
     base = TrainConfig(iterations=1, num_gaussians=100, init="random", lop=False, random_background=False)
     # The base already has both changes.
@@ -205,7 +205,7 @@ def test_ablate_command_writes_one_table(room, tmp_path):
 
 
 def test_observed_fraction_is_one_on_the_training_views_and_high_on_the_room(room):
-    from langfield.geometry_eval import observed_fraction
+    from langfield.eval.geometry import observed_fraction
 
     scene = load_scene(room)
     train = observed_fraction(scene, split="train")

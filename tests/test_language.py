@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from langfield import LanguageField, TrainConfig, load_scene, train
-from langfield.language import language_loss
+from langfield.model.language import language_loss
 from langfield.synthetic import make_room
-from langfield.trainer import language_targets
+from langfield.training.trainer import language_targets
 
 GEOMETRY = ("means", "log_scales", "quats", "opacity_logits")
 
@@ -131,7 +131,7 @@ def test_language_training_fits_the_training_views(scene):
 
 
 def test_eval_reports_feature_cosine_per_level(field, scene):
-    from langfield.evaluate import evaluate
+    from langfield.eval.evaluate import evaluate
 
     report = evaluate(field, scene)
     assert set(report["feature_cosine"]) == {"subpart", "part", "whole"}
@@ -154,7 +154,7 @@ def test_coarser_language_grid_is_recorded_and_reloads(scene, tmp_path):
 
 def test_autoencoder_is_trained_once_per_features_and_config():
     from encoders.autoencoder import AutoencoderConfig
-    from langfield.trainer import fit_autoencoder
+    from langfield.training.trainer import fit_autoencoder
 
     rng = np.random.default_rng(0)
     features = rng.normal(size=(40, 512)).astype(np.float32)

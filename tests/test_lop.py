@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from langfield.lop import (
+from langfield.training.lop import (
     LOP_GAMMA,
     assign_groups,
     local_outlier_factor,

@@ -32,11 +32,11 @@ from encoders.onnx_clip import ClipTokenizer, OnnxClipEncoder
 from encoders.onnx_depth import OnnxDepthEstimator
 from encoders.protocols import DepthEstimator, ImageTextEncoder
 from encoders.stubs import StubSegmenter
-from langfield import cli_models
+from langfield.cli import models as cli_models
 
 TOL = 1e-4  # max |ONNX - PyTorch|
 CLIP_NAME = "langfield-tiny-clip"
-CLIP_CFG = {  # the ViT-B-16 layout, shrunk; embed_dim 512 and the real vocabulary so caches are FORMAT.md's
+CLIP_CFG = {  # the ViT-B-16 layout, shrunk; embed_dim 512 and the real vocabulary so caches are as specified
     "embed_dim": 512,
     "vision_cfg": {"image_size": 32, "layers": 2, "width": 64, "patch_size": 16, "head_width": 32},
     "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 2},
@@ -466,7 +466,7 @@ def test_export_preprocess_train_query(clip, depth, models_dir, tmp_path) -> Non
     from encoders.export.sam import export_sam
     from encoders.onnx_sam import OnnxSamSegmenter
     from langfield import TrainConfig, load_scene, train
-    from langfield.preprocess import load_models, preprocess_scene
+    from langfield.io.preprocess import load_models, preprocess_scene
     from langfield.synthetic import make_room
 
     export_sam(models_dir / "sam", model=tiny_sam())
@@ -477,7 +477,7 @@ def test_export_preprocess_train_query(clip, depth, models_dir, tmp_path) -> Non
     del meta["depth_kind"]
     (room / "transforms.json").write_text(json.dumps(meta))
 
-    # The command, with SAM's default thresholds: every file FORMAT.md lists, at the image size.
+    # The command, with SAM's default thresholds: every file docs/format.md lists, at the image size.
     code, stdout, stderr = run_cli(["preprocess", str(room), "--models", str(models_dir)])
     assert code == 0, stderr
     assert "s/image" in stdout.splitlines()[-1] and "depth_kind recorded" in stdout.splitlines()[-1]

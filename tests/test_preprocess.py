@@ -1,5 +1,5 @@
-"""Scene preprocessing (langfield/preprocess.py) with the stub models and the graph segmenter: the files
-FORMAT.md describes, skipping views already done, depth_kind bookkeeping, and model-folder errors."""
+"""Scene preprocessing (langfield/io/preprocess.py) with the stub models and the graph segmenter: the files
+docs/format.md describes, skipping views already done, depth_kind bookkeeping, and model-folder errors."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ import pytest
 from encoders.cache import read_feature_cache
 from encoders.manifest import ManifestError
 from encoders.stubs import StubDepthEstimator, StubImageTextEncoder, StubSegmenter
-from langfield import cli_models
-from langfield.preprocess import PreprocessError, load_models, preprocess_scene
-from langfield.scene import load_scene
+from langfield.cli import models as cli_models
+from langfield.io.preprocess import PreprocessError, load_models, preprocess_scene
+from langfield.io.scene import load_scene
 from langfield.synthetic import make_room
 
 W, H = 48, 36

@@ -16,10 +16,10 @@ from torch import Tensor
 
 from encoders.text_table import TableTextEncoder, UnknownPhraseError
 from langfield import Camera, LanguageField, TrainConfig, load_scene, train
-from langfield import gaussians as G
-from langfield.cli_query import add_parser
+from langfield.cli.query import add_parser
 from langfield.constants import TEXT_TABLE_FILE
-from langfield.ply import read_gaussian_ply
+from langfield.io.ply import read_gaussian_ply
+from langfield.model import gaussians as G
 from langfield.query import (
     MATCH_RELEVANCY,
     EmptySelectionError,

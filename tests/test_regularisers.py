@@ -1,4 +1,4 @@
-"""Sparse-view regularisers (langfield/regularisers.py) and their use in training."""
+"""Sparse-view regularisers (langfield/training/regularisers.py) and their use in training."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import torch
 
 import langfield as lf
 from langfield.camera import Camera
-from langfield.regularisers import (
+from langfield.synthetic import make_room
+from langfield.training.regularisers import (
     anisotropy_loss,
     dark_backdrop,
     depth_smoothness,
@@ -20,7 +21,6 @@ from langfield.regularisers import (
     virtual_view_warp,
     z_depth,
 )
-from langfield.synthetic import make_room
 
 
 def test_dropout_drops_the_rate_and_keeps_the_expected_opacity() -> None:
@@ -95,7 +95,7 @@ def test_the_vertical_warp_with_the_true_depth_gives_back_the_training_image() -
 def test_the_warp_matches_a_render_of_the_shifted_camera() -> None:
     """Against the rasterizer: a textured plane of small Gaussians rendered from the lifted camera and
     warped back with the plane's depth gives the training render (up to resampling)."""
-    from langfield import gaussians as G
+    from langfield.model import gaussians as G
     from langfield.raster import rasterize
 
     cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=48, height=40)
@@ -212,7 +212,7 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
 def test_virtual_term_runs_on_every_nth_iteration_from_its_start(
     scene, monkeypatch, every, start, steps
 ) -> None:
-    from langfield import trainer as T
+    from langfield.training import trainer as T
 
     calls = []
     real = T._virtual_view_loss
@@ -263,7 +263,7 @@ def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(sce
 
 
 def test_area_resize_averages_blocks_and_passes_gradient() -> None:
-    from langfield.trainer import area_resize
+    from langfield.training.trainer import area_resize
 
     x = torch.arange(4 * 6 * 2, dtype=torch.float32).reshape(4, 6, 2).requires_grad_(True)
     small = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=3, height=2)
@@ -350,7 +350,7 @@ def test_dark_backdrop_is_a_tall_dark_region_at_the_border() -> None:
 def test_empty_space_comes_from_alpha_or_a_dark_backdrop(tmp_path) -> None:
     import cv2
 
-    from langfield.trainer import empty_space
+    from langfield.training.trainer import empty_space
 
     root = make_room(tmp_path / "room", seed=0, width=40, height=30, n_test=1)
     with_alpha = lf.load_scene(root)
@@ -371,7 +371,7 @@ def test_empty_space_comes_from_alpha_or_a_dark_backdrop(tmp_path) -> None:
 
 
 def test_backdrop_target_replaces_only_the_empty_part() -> None:
-    from langfield.trainer import backdrop_target
+    from langfield.training.trainer import backdrop_target
 
     colour = torch.tensor([0.2, 0.5, 0.9])
     rgb = torch.rand(6, 5, 3)
@@ -416,7 +416,8 @@ def test_opacity_decay_fades_the_gaussians_from_refine_start(scene) -> None:
     )  # fmt: skip
     plain = lf.train(scene, lf.TrainConfig(**base, opacity_decay=1.0), progress=False)
     decayed = lf.train(scene, lf.TrainConfig(**base, opacity_decay=0.5), progress=False)
-    ratio = float(lf.gaussians.opacities(decayed.splats).mean() / lf.gaussians.opacities(plain.splats).mean())
+    opacities = lf.model.gaussians.opacities
+    ratio = float(opacities(decayed.splats).mean() / opacities(plain.splats).mean())
     # Three decayed iterations (1, 2, 3) halve every opacity three times; Adam moves a logit by ~lr.
     assert 0.125 * 0.7 < ratio < 0.125 * 1.4
     with pytest.raises(ValueError, match="opacity_decay"):
@@ -431,7 +432,7 @@ def _plane_views() -> tuple[Camera, Camera, torch.Tensor, torch.Tensor]:
 
 
 def test_backproject_inverts_the_projection() -> None:
-    from langfield.regularisers import backproject
+    from langfield.training.regularisers import backproject
 
     a, _, depth, _ = _plane_views()
     points = backproject(depth, a)
@@ -443,7 +444,7 @@ def test_backproject_inverts_the_projection() -> None:
 
 
 def test_free_space_violation_counts_points_in_front_of_the_other_view_only() -> None:
-    from langfield.regularisers import backproject, free_space_violation
+    from langfield.training.regularisers import backproject, free_space_violation
 
     a, b, depth_a, depth_b = _plane_views()
     covered = torch.ones(30, 40, dtype=torch.bool)
@@ -462,7 +463,7 @@ def test_free_space_violation_counts_points_in_front_of_the_other_view_only() ->
 
 
 def test_the_free_space_term_pulls_a_near_surface_back() -> None:
-    from langfield.regularisers import backproject, free_space_violation
+    from langfield.training.regularisers import backproject, free_space_violation
 
     a, b, depth_a, depth_b = _plane_views()
     near = (depth_a * 0.5).requires_grad_(True)
@@ -474,7 +475,7 @@ def test_the_free_space_term_pulls_a_near_surface_back() -> None:
 
 
 def test_training_with_the_free_space_term_runs(scene, monkeypatch) -> None:
-    from langfield import trainer as T
+    from langfield.training import trainer as T
 
     calls = []
     real = T._visibility_loss
@@ -490,9 +491,9 @@ def test_training_with_the_free_space_term_runs(scene, monkeypatch) -> None:
 def test_carving_removes_the_gaussians_in_front_of_a_resolved_surface_only() -> None:
     from types import SimpleNamespace
 
-    from langfield import gaussians as G
-    from langfield.strategy import DensifyStrategy
-    from langfield.trainer import _carve_free_space
+    from langfield.model import gaussians as G
+    from langfield.training.strategy import DensifyStrategy
+    from langfield.training.trainer import _carve_free_space
 
     a, b, depth, _ = _plane_views()
     resolved = torch.ones(30, 40, dtype=torch.bool)
@@ -515,9 +516,9 @@ def test_carving_removes_the_gaussians_in_front_of_a_resolved_surface_only() -> 
 def test_carving_that_would_remove_every_gaussian_removes_none() -> None:
     from types import SimpleNamespace
 
-    from langfield import gaussians as G
-    from langfield.strategy import DensifyStrategy
-    from langfield.trainer import _carve_free_space
+    from langfield.model import gaussians as G
+    from langfield.training.strategy import DensifyStrategy
+    from langfield.training.trainer import _carve_free_space
 
     a, _, depth, _ = _plane_views()
     points = torch.tensor([[-0.2, 0.0, -1.0], [0.1, 0.0, -1.5]])  # both in front of the plane
@@ -539,8 +540,8 @@ def test_training_with_carving_records_what_it_removed(scene) -> None:
 
 
 def test_a_view_at_half_size_averages_the_photo_and_samples_the_targets() -> None:
-    from langfield.depth_loss import LADTarget
-    from langfield.trainer import ViewTargets
+    from langfield.training.lad import LADTarget
+    from langfield.training.trainer import ViewTargets
 
     cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=8, height=6)
     image = torch.rand(6, 8, 3)

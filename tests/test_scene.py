@@ -1,4 +1,5 @@
-"""Tests for langfield.scene and langfield.colmap: the four folder layouts, view choice, bounds, errors."""
+"""Tests for langfield.io.scene and langfield.io.colmap: the four folder layouts, view choice, bounds,
+errors."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import pytest
 import torch
 
 from langfield.camera import Camera
-from langfield.scene import SceneError, load_scene
+from langfield.io.scene import SceneError, load_scene
 
 DATA = Path(os.environ.get("LANGFIELD_TEST_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 LEGO, FERN = DATA / "lego_sparse", DATA / "llff_fern"

@@ -9,9 +9,9 @@ import pytest
 import torch
 from torch import nn
 
-from langfield import gaussians as G
+from langfield.model import gaussians as G
 from langfield.raster.projection import quat_to_rotmat
-from langfield.strategy import DensifyStrategy, duplicate, remove, split
+from langfield.training.strategy import DensifyStrategy, duplicate, remove, split
 
 BOUNDS = np.array([[-1.0, -2.0, 0.0], [1.0, 2.0, 3.0]])
 N = 40

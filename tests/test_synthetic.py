@@ -1,4 +1,4 @@
-"""Tests of the synthetic room: the FORMAT.md contract, determinism and the ground truth's consistency."""
+"""The synthetic room: the docs/format.md contract, determinism and the ground truth's consistency."""
 
 from __future__ import annotations
 

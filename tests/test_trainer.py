@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from langfield import LanguageField, TrainConfig, load_scene, train
-from langfield import gaussians as G
-from langfield import trainer as T
+from langfield.model import gaussians as G
 from langfield.synthetic import make_room
-from langfield.trainer import color_loss, evaluate_psnr
+from langfield.training import trainer as T
+from langfield.training.trainer import color_loss, evaluate_psnr
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +60,7 @@ def test_zero_iterations_returns_the_initial_field(scene) -> None:
 
 
 def test_zero_iterations_from_the_photos_returns_their_start_points(scene) -> None:
-    from langfield.initialisation import start_points
+    from langfield.training.initialisation import start_points
 
     field = _train(scene, iterations=0, num_gaussians=300, seed=2)
     cams = scene.cameras("train")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from langfield.camera import Camera
-from langfield.virtual_views import interpolate_camera, sample_virtual_cameras
+from langfield.training.virtual_views import interpolate_camera, sample_virtual_cameras
 
 
 @pytest.fixture

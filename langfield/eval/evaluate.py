@@ -1,6 +1,6 @@
 """Evaluation of a trained field on a scene's test views: ``langfield.evaluate(field, scene)``.
 
-The report's top-level keys are fixed by FORMAT.md ("Evaluation report"). Text queries are scored as
+The report's top-level keys are fixed by docs/format.md ("Evaluation report"). Text queries are scored as
 LangSplat scores them (``eval/evaluate_iou_loc.py``): for every test view and every phrase of its
 ``segmentations/`` folder, the IoU of the query's mask with the ground truth and the localization hit,
 from relevancy maps of exactly decoded rendered latents (``field.decode_levels``: through the field's
@@ -25,10 +25,10 @@ from encoders.cache import read_feature_cache
 from encoders.protocols import LEVELS, TextEncoder
 from encoders.text_table import UnknownPhraseError
 from langfield.atomic import atomic_path, check_writable_file
+from langfield.eval.geometry import selection_scores
 from langfield.field import LanguageField
-from langfield.geometry_eval import selection_scores
+from langfield.io.scene import Scene
 from langfield.query import fill_empty, text_encoder_for
-from langfield.scene import Scene
 from querying.evaluation import query_record, summarize_queries
 from querying.metrics import psnr, ssim
 from querying.relevancy import CANONICAL_PHRASES, relevancy, relevancy_mask
@@ -62,7 +62,7 @@ def evaluate(
             ``oracle``: its mIoU and mAcc, and the field's mIoU as a fraction of the oracle's).
 
     Returns:
-        The FORMAT.md report as a dict; ``views[i]["queries"]`` is ``{phrase: {"iou", "hit"}}``, and
+        The docs/format.md report as a dict; ``views[i]["queries"]`` is ``{phrase: {"iou", "hit"}}``, and
         with ``oracle`` ``views[i]["oracle_queries"]`` the same on the true features.
 
     Raises:
@@ -240,7 +240,7 @@ def _label_embeddings(
 def score_queries(
     maps: torch.Tensor, phrases: list[str], labels: dict[str, np.ndarray]
 ) -> dict[str, dict[str, float | bool]]:
-    """``{phrase: {"iou", "hit"}}`` of one view (FORMAT.md).
+    """``{phrase: {"iou", "hit"}}`` of one view (docs/format.md).
 
     Args:
         maps: [P, 3, H, W] relevancy of every phrase of ``phrases`` in the view.

@@ -455,7 +455,7 @@ def _top_up(
     normal offset of each one's neighbour spacing, kept inside ``bounds``."""
     import torch
 
-    from langfield.gaussians import mean_sq_neighbor_distance
+    from langfield.model.gaussians import mean_sq_neighbor_distance
 
     extra = wanted - len(points)
     rng = np.random.default_rng(seed)
@@ -521,7 +521,7 @@ def depth_prior_points(
 
 
 def sfm_points(cameras: list[Camera], images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Sparse SIFT points triangulated with the known poses (pycolmap); see :mod:`langfield.sfm`."""
-    from langfield.sfm import sfm_points as triangulate
+    """Sparse SIFT points triangulated with the known poses (pycolmap); see :mod:`langfield.training.sfm`."""
+    from langfield.training.sfm import sfm_points as triangulate
 
     return triangulate(cameras, images)

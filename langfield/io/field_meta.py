@@ -1,5 +1,5 @@
 """What a field folder's ``field.json`` holds (:class:`FieldMeta`) and must hold to be loaded, checked
-key by key (FORMAT.md).
+key by key (docs/format.md).
 
 :func:`check_field_meta` runs before any tensor is read, and :func:`check_tensors` compares
 ``field.safetensors`` with the shapes the modules that ``field.json`` describes expect; each problem is
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from langfield.hashgrid import HashGridConfig
+from langfield.model.hashgrid import HashGridConfig
 
 __all__ = ["FieldFileError", "FieldMeta", "check_field_meta", "check_tensors"]
 

@@ -21,7 +21,7 @@ from dataclasses import replace
 from torch import Tensor, nn
 
 from encoders.protocols import LEVELS
-from langfield.hashgrid import HashGrid, HashGridConfig
+from langfield.model.hashgrid import HashGrid, HashGridConfig
 
 N_LEVELS = len(LEVELS)  # subpart, part, whole
 LATENT_DIM = 3

@@ -3,7 +3,7 @@
 ``langfield preprocess SCENE --models DIR`` runs, for every view of the scene:
 
 - the segmenter and the CLIP image encoder (eq. 1, :func:`encoders.cache.build_feature_cache`) into
-  ``language_features/<name>_f.npy`` and ``<name>_s.npy`` (FORMAT.md), on the image as the scene gives
+  ``language_features/<name>_f.npy`` and ``<name>_s.npy`` (docs/format.md), on the image as the scene gives
   it at full resolution (undistorted, alpha on white), which is how the trainer reads the cache;
 - the monocular depth network into ``depths/<name>.npy``, float32 [H, W], on the image as stored
   (the scene undistorts depth maps when it reads them, as it does the image).
@@ -43,7 +43,7 @@ from encoders.cache import (
 )
 from encoders.protocols import DepthEstimator, ImageTextEncoder, Segmenter
 from langfield.atomic import atomic_path
-from langfield.scene import Scene, load_scene
+from langfield.io.scene import Scene, load_scene
 
 __all__ = ["Models", "PreprocessError", "PreprocessReport", "load_models", "preprocess_scene"]
 
@@ -226,10 +226,10 @@ def preprocess_scene(
     overwrite: bool = False,
     progress: bool = True,
 ) -> PreprocessReport:
-    """Write ``language_features/`` and ``depths/`` for every view of a scene (FORMAT.md).
+    """Write ``language_features/`` and ``depths/`` for every view of a scene (docs/format.md).
 
     Args:
-        scene_dir: the scene folder (any layout :func:`~langfield.scene.load_scene` reads).
+        scene_dir: the scene folder (any layout :func:`~langfield.io.scene.load_scene` reads).
         segmenter: masks at three levels; None with ``encoder`` None to compute depth only.
         encoder: CLIP image encoder (eq. 1); its ``dim`` is the cache's D.
         depth: monocular depth network, or None for no depth prior.

@@ -1,6 +1,6 @@
 """Scene folders: posed photos with optional depth priors, language features and segmentations.
 
-:func:`load_scene` reads one of four layouts (FORMAT.md) into a :class:`Scene`:
+:func:`load_scene` reads one of four layouts (docs/format.md) into a :class:`Scene`:
 
 1. `transforms.json` (nerfstudio / instant-ngp);
 2. the Blender NeRF pair `transforms_train.json` / `transforms_test.json`;
@@ -30,9 +30,9 @@ import cv2
 import numpy as np
 
 from encoders.protocols import DEPTH_KINDS
-from langfield import colmap
 from langfield.camera import Camera
 from langfield.constants import TEXT_TABLE_FILE
+from langfield.io import colmap as colmap
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 _TEST_EVERY = 8  # LLFF protocol (RegNeRF, DNGaussian, FSGS): every 8th image is held out
@@ -197,7 +197,7 @@ class Scene:
     def object_mask(self, name: str | int) -> np.ndarray | None:
         """[H, W] bool `masks/<name>.png` (non-zero = object) at working resolution, or None.
 
-        The DTU protocol scores test views with the object alone (masked PSNR / SSIM, FORMAT.md).
+        The DTU protocol scores test views with the object alone (masked PSNR / SSIM, docs/format.md).
         """
         i = self._position(name)
         path = self.root / "masks" / f"{self.views[i].name}.png"

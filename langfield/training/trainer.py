@@ -2,11 +2,11 @@
 
 The loss is L = L_C + L_LF + L_D + L_O: L_C = 0.8 L1 + 0.2 D-SSIM with kornia's SSIM, L_LF the
 language loss on the rendered latents (geometry detached), L_D the depth distillation of
-:mod:`langfield.depth_loss` (LAD, eq. 6-11) on the hard and soft rendered depth, and L_O an L1 penalty
+:mod:`langfield.training.lad` (LAD, eq. 6-11) on the hard and soft rendered depth, and L_O an L1 penalty
 on the opacities (3DGS-MCMC) that lets densification prune the Gaussians the images do not need. Gaussians are
 initialised at random inside the scene bounds (COLMAP often fails on three views), sized to the scene,
-densified by :class:`langfield.strategy.DensifyStrategy`, and pruned by language-guided outlier
-pruning (:mod:`langfield.lop`, eq. 14-16) every ``lop_every`` iterations.
+densified by :class:`langfield.training.strategy.DensifyStrategy`, and pruned by language-guided outlier
+pruning (:mod:`langfield.training.lop`, eq. 14-16) every ``lop_every`` iterations.
 """
 
 from __future__ import annotations
@@ -35,18 +35,19 @@ from encoders.autoencoder import (
 )
 from encoders.cache import read_feature_cache
 from encoders.protocols import LEVELS
-from langfield import gaussians as G
 from langfield.camera import Camera
-from langfield.depth_loss import LAMBDA_SA, LADTarget, depth_loss
 from langfield.field import GridFeatures, LanguageField, Render, color_field_spec
-from langfield.field_meta import LANGUAGE_FEATURES
-from langfield.fields import ColorField
-from langfield.hashgrid import HashGridConfig
-from langfield.initialisation import INIT_METHODS, StartPoints, start_points
-from langfield.language import LANGUAGE_CHANNELS, N_LEVELS, LanguageHeads, language_loss
-from langfield.lop import LOP_GAMMA, LOP_INTERVAL, LOP_TAU, lop_prune
+from langfield.io.field_meta import LANGUAGE_FEATURES
+from langfield.io.scene import Scene
+from langfield.model import gaussians as G
+from langfield.model.colour import ColorField
+from langfield.model.hashgrid import HashGridConfig
+from langfield.model.language import LANGUAGE_CHANNELS, N_LEVELS, LanguageHeads, language_loss
 from langfield.raster import resolve_backend
-from langfield.regularisers import (
+from langfield.training.initialisation import INIT_METHODS, StartPoints, start_points
+from langfield.training.lad import LAMBDA_SA, LADTarget, depth_loss
+from langfield.training.lop import LOP_GAMMA, LOP_INTERVAL, LOP_TAU, lop_prune
+from langfield.training.regularisers import (
     anisotropy_loss,
     backproject,
     dark_backdrop,
@@ -58,9 +59,8 @@ from langfield.regularisers import (
     virtual_view_warp,
     z_depth,
 )
-from langfield.scene import Scene
-from langfield.strategy import DensifyStrategy, remove
-from langfield.virtual_views import sample_virtual_cameras
+from langfield.training.strategy import DensifyStrategy, remove
+from langfield.training.virtual_views import sample_virtual_cameras
 from querying.metrics import psnr, ssim_map
 
 
@@ -74,7 +74,7 @@ class TrainConfig:
 
     iterations: int | None = None  # None: sized by the scene (training_length); N forces N
     seed: int = 0
-    # Where the Gaussians start (langfield.initialisation): plane-sweep stereo on the training views,
+    # Where the Gaussians start (langfield.training.initialisation): plane-sweep stereo on the training views,
     # COLMAP's sparse SIFT points, the depth prior aligned to the dense points, or random in the bounds.
     init: Literal["dense", "sfm", "depth", "random"] = "dense"
     init_fill: float = 0.1  # random points added, as a fraction of the photo points
@@ -135,10 +135,11 @@ class TrainConfig:
     # L1 on the opacities, lambda * mean(sigmoid(o)) (3DGS-MCMC, Kheradmand et al. 2024, weight 0.01): a
     # Gaussian the images do not need fades below prune_opacity and densification removes it. Three
     # views leave most of the random start in free space, and those floaters carry wrong colours and
-    # latents into new views; see the README's "Measured here" for the sweep behind the default.
+    # latents into new views; docs/figures.md has the sweep behind the default.
     lambda_opacity: float = 0.03
-    # Sparse-view regularisers (langfield.regularisers); 0 turns each off. Defaults chosen by 1000-iteration
-    # runs on LLFF fern, DTU scan37 and the built-in scene (docs/figures.md, "Sparse-view geometry").
+    # Sparse-view regularisers (langfield.training.regularisers); 0 turns each off. Defaults chosen by
+    # 1000-iteration runs on LLFF fern, DTU scan37 and the built-in scene (docs/figures.md,
+    # "Sparse-view geometry").
     drop_gamma: float = 0.2  # Gaussian dropout: rate gamma t / T (DropGaussian's 0.2)
     lambda_virtual: float = 1.0  # virtual-view consistency weight (Binocular-guided 3DGS)
     # Its sideways shift, as a fraction of the median rendered depth: DTU's wide baselines gain most
@@ -165,8 +166,8 @@ class TrainConfig:
     # a photo shows a black backdrop the target there is that colour too. RGBA scenes keep their white:
     # a random one there cost the built-in scene 2.1 dB and mIoU 0.05 (1500 iterations).
     random_background: bool = True
-    # Empty space the photos show (langfield.regularisers.dark_backdrop): a black backdrop is found by
-    # DNGaussian's DTU rule (no effect on photos without one: LLFF fern), and with the alpha of RGBA
+    # Empty space the photos show (langfield.training.regularisers.dark_backdrop): a black backdrop is
+    # found by DNGaussian's DTU rule (no effect on photos without one: LLFF fern), and with the alpha of RGBA
     # images the rendered alpha there is penalised, lambda_empty * mean(alpha * (1 - coverage)).
     dark_backdrop: bool = True
     lambda_empty: float = 1.0
@@ -187,7 +188,8 @@ class TrainConfig:
     lambda_anisotropy: float = 0.0  # penalty on max/min scale above anisotropy_ratio
     anisotropy_ratio: float = 10.0
     # Pseudo views: an ONNX image refiner folder (encoders.onnx_refiner) cleans renders of virtual cameras
-    # between and around the training ones (langfield.virtual_views), used as confidence-weighted targets.
+    # between and around the training ones (langfield.training.virtual_views), used as
+    # confidence-weighted targets.
     refiner: str | None = None
     lambda_refiner: float = 0.5
     refiner_every: int = 10
@@ -561,7 +563,7 @@ class ViewTargets:
 
 
 def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
-    """Where the Gaussians start (:func:`langfield.initialisation.start_points` with ``cfg.init``)."""
+    """Where the Gaussians start (:func:`~langfield.training.initialisation.start_points`, ``cfg.init``)."""
     bounds = scene_bounds(scene, cfg)
     train_cams = scene.cameras("train")
     pixels = max(c.width * c.height for c in train_cams)  # of one image
@@ -936,8 +938,8 @@ def empty_space(scene: Scene, cfg: TrainConfig) -> tuple[dict[str, Tensor], str 
     """Where each training view shows empty space: ``({name: [H, W] coverage in [0, 1]}, source)``.
 
     Coverage is 1 on surfaces and 0 on empty space: the alpha channel of RGBA images, else (with
-    ``cfg.dark_backdrop``) 0 on a black backdrop (:func:`langfield.regularisers.dark_backdrop`); views
-    with neither are left out. ``source`` is "alpha", "dark backdrop" or None (the report's record).
+    ``cfg.dark_backdrop``) 0 on a black backdrop (:func:`~langfield.training.regularisers.dark_backdrop`);
+    views with neither are left out. ``source`` is "alpha", "dark backdrop" or None (the report's record).
     """
     coverage: dict[str, Tensor] = {}
     sources = set()
@@ -1007,7 +1009,7 @@ def _visibility_loss(
     rendered: dict[str, tuple[Camera, Tensor, Tensor]],
     tolerance: float,
 ) -> Tensor:
-    """Mean free-space violation (:func:`langfield.regularisers.free_space_violation`) of this view's
+    """Mean free-space violation (:func:`langfield.training.regularisers.free_space_violation`) of this view's
     rendered surface [H, W] in every other training view's last render."""
     points = backproject(depth_z, cam)[seen]
     total = depth_z.sum() * 0.0

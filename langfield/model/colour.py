@@ -13,7 +13,7 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor, nn
 
-from langfield.hashgrid import HashGrid, HashGridConfig
+from langfield.model.hashgrid import HashGrid, HashGridConfig
 
 # Directions averaged by bake_dc: a Fibonacci sphere spreads them almost evenly.
 _BAKE_DIRECTIONS = 64

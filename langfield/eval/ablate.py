@@ -1,6 +1,6 @@
 """``langfield ablate SCENE``: the paper's Table 3 cases on one scene, same seed and budget, one table.
 
-Cases (each a :class:`~langfield.trainer.TrainConfig` change from the full method):
+Cases (each a :class:`~langfield.training.trainer.TrainConfig` change from the full method):
 
 - ``full``: hash-grid language features, LAD (eq. 6-11) and LOP (eq. 14-16);
 - ``no-lop``: without language-guided outlier pruning;
@@ -13,8 +13,8 @@ Cases (each a :class:`~langfield.trainer.TrainConfig` change from the full metho
 - ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP; the comparison of
   issue 5's mIoU target.
 
-The sparse-view switches (:mod:`langfield.regularisers`, :mod:`langfield.initialisation`), each one
-change from the defaults:
+The sparse-view switches (:mod:`langfield.training.regularisers`,
+:mod:`langfield.training.initialisation`), each one change from the defaults:
 
 - ``random-init``, ``sfm-init``, ``depth-init``: another start than the plane-sweep points;
 - ``no-dropout``: without Gaussian dropout; ``no-virtual``: without the virtual-view consistency term;
@@ -30,7 +30,7 @@ Cases that would train ``full`` again are skipped with a warning: those that nee
 
 Each row: mIoU / mAcc (where the scene has labels and querying can score them), PSNR and SSIM on test
 views (masked PSNR where the scene has object masks), aligned depth error and floaters (scenes with
-ground truth), the training views' depth agreement (:func:`~langfield.geometry_eval.depth_agreement`),
+ground truth), the training views' depth agreement (:func:`~langfield.eval.geometry.depth_agreement`),
 training seconds and Gaussians.
 """
 
@@ -43,11 +43,11 @@ from pathlib import Path
 from typing import Any
 
 from langfield.atomic import atomic_path, check_writable_file
-from langfield.evaluate import evaluate
+from langfield.eval.evaluate import evaluate
+from langfield.eval.geometry import count_floaters, depth_agreement, depth_errors
 from langfield.field import check_output_folder
-from langfield.geometry_eval import count_floaters, depth_agreement, depth_errors
-from langfield.scene import Scene
-from langfield.trainer import TrainConfig, check_inputs, empty_space, train
+from langfield.io.scene import Scene
+from langfield.training.trainer import TrainConfig, check_inputs, empty_space, train
 
 CASES: dict[str, dict[str, Any]] = {
     "full": {},

@@ -1,4 +1,5 @@
-"""Regularisers for training from three views, each a switch of :class:`langfield.trainer.TrainConfig`.
+"""Regularisers for training from three views, each a switch of
+:class:`langfield.training.trainer.TrainConfig`.
 
 - Gaussian dropout (DropGaussian, Park et al., CVPR 2025): each iteration a random fraction
   r_t = gamma t / T of the Gaussians is left out of the render and the opacities of the rest are

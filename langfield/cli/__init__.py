@@ -73,7 +73,7 @@ def _load_field_and_scene(out: str, scene_path: str | None):
 
 def train_config(args: argparse.Namespace):
     """The TrainConfig the flags of ``langfield train`` give (checked: a bad value names its flag)."""
-    from langfield.trainer import TrainConfig
+    from langfield.training.trainer import TrainConfig
 
     cfg = TrainConfig(
         language=False if args.no_language else None,
@@ -121,8 +121,8 @@ SPARSE_VIEW_FLAGS = (
 
 def cmd_train(args: argparse.Namespace) -> int:
     from langfield.field import check_output_folder
-    from langfield.scene import load_scene
-    from langfield.trainer import evaluate_psnr, summary_line, train
+    from langfield.io.scene import load_scene
+    from langfield.training.trainer import evaluate_psnr, summary_line, train
 
     cfg = train_config(args)
     out = Path(args.out)
@@ -137,9 +137,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from langfield.ablate import DEFAULT_CASES, format_table, run_ablation
-    from langfield.scene import load_scene
-    from langfield.trainer import TrainConfig
+    from langfield.eval.ablate import DEFAULT_CASES, format_table, run_ablation
+    from langfield.io.scene import load_scene
+    from langfield.training.trainer import TrainConfig
 
     cases = tuple(c.strip() for c in args.cases.split(",")) if args.cases else DEFAULT_CASES
     base = TrainConfig(iterations=args.iterations, seed=args.seed, backend=args.backend)
@@ -157,7 +157,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     import torch
 
     from langfield.atomic import check_writable_folder
-    from langfield.evaluate import write_render_pngs
+    from langfield.eval.evaluate import write_render_pngs
 
     save = check_writable_folder(args.save, "--save")
     field, scene = _load_field_and_scene(args.out, args.scene)
@@ -177,7 +177,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from langfield.atomic import check_writable_file, check_writable_folder
-    from langfield.evaluate import evaluate, write_report
+    from langfield.eval.evaluate import evaluate, write_report
 
     json_path = check_writable_file(args.json, "--json report")
     check_writable_file(json_path.with_suffix(".md"), "Markdown summary")
@@ -221,8 +221,8 @@ def _cosine_text(report: dict) -> str:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from langfield.bench import format_table, run_bench
-    from langfield.scene import load_scene
+    from langfield.eval.bench import format_table, run_bench
+    from langfield.io.scene import load_scene
     from langfield.synthetic import make_room
 
     out = Path(args.out)
@@ -258,10 +258,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from langfield.evaluate import evaluate, write_report
-    from langfield.scene import load_scene
+    from langfield.eval.evaluate import evaluate, write_report
+    from langfield.io.scene import load_scene
     from langfield.synthetic import make_room
-    from langfield.trainer import TrainConfig, summary_line, train, training_length
+    from langfield.training.trainer import TrainConfig, summary_line, train, training_length
 
     if args.layout < 0:
         raise ValueError(f"--layout: a whole number >= 0, got {args.layout}")
@@ -284,7 +284,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"[4/5] report: {out / 'report.json'} and {md}")
     queries = out / "queries"
     print(f"[5/5] text queries on the novel views ('couch' is a synonym the table knows) -> {queries}")
-    from langfield.cli_query import cmd_query
+    from langfield.cli.query import cmd_query
 
     query_args = argparse.Namespace(
         out=str(out / "field"),
@@ -597,8 +597,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=120, help="image height of the built-in scene (default 120)")
     p.set_defaults(func=cmd_demo)
 
-    from langfield.cli_models import add_parsers
-    from langfield.cli_query import add_parser as add_query_parser
+    from langfield.cli.models import add_parsers
+    from langfield.cli.query import add_parser as add_query_parser
 
     add_parsers(sub)  # export, preprocess
     add_query_parser(sub)

@@ -21,7 +21,7 @@ import torch
 from encoders.protocols import TextEncoder
 from langfield.camera import Camera
 from langfield.field import LanguageField
-from langfield.scene import Scene
+from langfield.io.scene import Scene
 
 FLOATER_TOLERANCE = 0.03  # x the scene bounds' diagonal: farther from every surface is a floater
 # x the bounds' diagonal (about 6 cm in the built-in room): a Gaussian belongs to the object whose surface

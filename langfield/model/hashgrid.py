@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from langfield.hashgrid_cpu import InterpolateRowsNumba
 from langfield.kernels import notice_once
+from langfield.model.hashgrid_cpu import InterpolateRowsNumba
 
 # Instant-NGP's spatial-hash primes (paper eq. 4); the first is 1 for cache coherence.
 _PRIMES = (1, 2654435761, 805459861)
@@ -178,7 +178,7 @@ class HashGrid(nn.Module):
             raise ValueError(
                 f"grid box needs a finite centre and a positive half extent, got {center}, {half}"
             )
-        # The numba kernels of :mod:`langfield.hashgrid_cpu` on the CPU; False selects the PyTorch
+        # The numba kernels of :mod:`langfield.model.hashgrid_cpu` on the CPU; False selects the PyTorch
         # reference (``_InterpolateRows``), which the tests compare them against.
         self.fast = True
         self.register_buffer("center", center)

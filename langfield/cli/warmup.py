@@ -8,9 +8,9 @@ import time
 import torch
 
 from langfield.camera import Camera
-from langfield.fields import ColorField
-from langfield.hashgrid import HashGridConfig
 from langfield.kernels import notice_once, uncompiled_kernels
+from langfield.model.colour import ColorField
+from langfield.model.hashgrid import HashGridConfig
 from langfield.raster import rasterize
 
 __all__ = ["main", "warm_up"]

@@ -134,7 +134,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_preprocess(args: argparse.Namespace) -> int:
     """``langfield preprocess SCENE``: language features and depth priors of every view."""
-    from langfield.preprocess import load_models, preprocess_scene
+    from langfield.io.preprocess import load_models, preprocess_scene
 
     try:
         models = load_models(

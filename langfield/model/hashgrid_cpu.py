@@ -1,6 +1,6 @@
 """The hash grid's trilinear interpolation as numba kernels, forward and backward.
 
-Same arithmetic as :class:`langfield.hashgrid._InterpolateRows` (the PyTorch reference it is tested
+Same arithmetic as :class:`langfield.model.hashgrid._InterpolateRows` (the PyTorch reference it is tested
 against, values and gradients), arranged for the CPU:
 
 - one pass per level (``prange`` over levels): each level owns its own block ``[l T, (l + 1) T)`` of

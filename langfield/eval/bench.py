@@ -6,7 +6,7 @@
 2. a training curve on the built-in scene (or ``--scene``): novel-view PSNR at checkpoints against
    training wall time and Gaussian count, and from it the time to quality (:func:`time_to_quality`),
    the iterations per second over the run and the process's peak memory.
-The JSON keys are fixed by FORMAT.md.
+The JSON keys are fixed by docs/format.md.
 """
 
 from __future__ import annotations
@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from langfield import gaussians as G
 from langfield.camera import Camera
-from langfield.evaluate import evaluate
+from langfield.eval.evaluate import evaluate
+from langfield.io.scene import Scene
+from langfield.model import gaussians as G
 from langfield.raster import BACKENDS, rasterize
-from langfield.scene import Scene
-from langfield.trainer import TrainConfig, evaluate_psnr, train, training_length
+from langfield.training.trainer import TrainConfig, evaluate_psnr, train, training_length
 
 
 def backend_step_ms(

@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from langfield.gaussians import normalize_quats
+from langfield.model.gaussians import normalize_quats
 from langfield.raster.projection import quat_to_rotmat
 
 Optimizers = dict[str, torch.optim.Optimizer]

@@ -1,0 +1,1 @@
+"""Training a field: the loop, densification, start points and the losses (LAD, LOP, regularisers)."""
