@@ -35,7 +35,8 @@ lint: install
 test: lint
 	$(BIN)/python -m pytest -q
 
-# The tests that train nothing end to end: about a minute, for quick checks while editing.
+# The suite without the tests marked `slow` (the longest trainings and end-to-end commands): about
+# half its time, for quick checks while editing.
 test-fast: lint
 	$(BIN)/python -m pytest -q -m "not slow"
 

@@ -45,6 +45,7 @@ def _weights_by_forward_passes(field, cam) -> torch.Tensor:
     return torch.stack(maps)
 
 
+@pytest.mark.slow
 def test_the_gradient_pass_equals_the_weighted_sums_of_forward_renders(field, scene) -> None:
     targets = _targets(scene)
     names = scene.names("train")

@@ -179,6 +179,7 @@ def _nearest_concept_angles(ae: LanguageAutoencoder, concepts: np.ndarray) -> to
     return angles.fill_diagonal_(360.0).amin(dim=1)
 
 
+@pytest.mark.slow
 def test_the_spread_term_moves_unlike_concepts_apart_and_keeps_the_reconstruction() -> None:
     features, concepts = clustered_features(n_concepts=30, repeats=3)
     plain, _ = train_autoencoder(features, progress=False)

@@ -192,6 +192,7 @@ def test_train_language_decode_flag_reaches_the_field(scene_dir, tmp_path) -> No
 # ---------------------------------------------------------------- bench / demo
 
 
+@pytest.mark.slow
 def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     out = tmp_path / "bench"
     json_path = out / "b.json"
@@ -282,6 +283,7 @@ def test_raster_throughput_counts_the_pairs_the_reference_binning_lists() -> Non
         assert r["fraction_of_peak"] == pytest.approx(r["achieved_gflops"] / peak["gflops"])
 
 
+@pytest.mark.slow
 def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--iterations", "20", "--width", "48", "--height", "36"]) == 0

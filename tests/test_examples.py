@@ -30,6 +30,7 @@ def tiny_field(tmp_path_factory) -> Path:
     return root / "field"
 
 
+@pytest.mark.slow
 def test_language_losses_tabulates_every_stage(tiny_field, tmp_path, capsys) -> None:
     out = tmp_path / "losses.json"
     assert _module("language_losses").main([str(tiny_field), "--json", str(out)]) == 0

@@ -169,6 +169,7 @@ def test_corrupt_tensors_file_is_rejected_naming_it(saved, damage) -> None:
     assert "checksum" in str(err.value)
 
 
+@pytest.mark.slow
 def test_tensors_of_another_save_are_rejected(field, saved, scene, tmp_path) -> None:
     # What an interrupted save leaves behind: new tensors renamed into place, the old field.json.
     other = train(scene, TrainConfig(iterations=0, num_gaussians=300, seed=1), progress=False)

@@ -202,6 +202,7 @@ def test_numba_kernels_match_the_reference(cfg, groups, dtype) -> None:
         torch.testing.assert_close(a, b, **tol, msg=what)
 
 
+@pytest.mark.slow
 def test_numba_kernels_pass_gradcheck() -> None:
     grid = _grid(LANG)
     x = _world(grid, torch.rand(12, 3, dtype=torch.float64)).requires_grad_(True)

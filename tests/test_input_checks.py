@@ -94,6 +94,7 @@ def test_train_refuses_an_out_that_holds_a_field(scene_dir, field_dir, capsys, n
     assert (field_dir / "field.json").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_train_force_replaces_the_field(scene_dir, field_dir, tmp_path, capsys) -> None:
     out = tmp_path / "out"
     shutil.copytree(field_dir, out)

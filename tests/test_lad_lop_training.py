@@ -39,6 +39,7 @@ def test_lop_rounds_are_logged_and_remove_gaussians(trained):
     assert all(r["removed"] <= 0.05 * r["before"] for r in rounds)
 
 
+@pytest.mark.slow
 def test_training_goes_on_after_pruning_with_optimizer_state_in_step(room):
     # Pruning at 10 and 20 with densification on: the next Adam steps and refinements must still fit.
     cfg = TrainConfig(iterations=25, lop_every=10, autoencoder_iterations=30, refine_start=5, refine_every=5)
@@ -64,6 +65,7 @@ def test_depth_is_on_for_a_scene_with_priors_and_recorded(trained, tmp_path):
         (["--no-lop"], {"lop": None}),
     ],
 )
+@pytest.mark.slow
 def test_ablation_switches_are_recorded_in_field_json(room, tmp_path, flags, expect):
     out = tmp_path / "out"
     assert main(["train", str(room), "--out", str(out), "--iterations", "3", *flags]) == 0
@@ -193,6 +195,7 @@ def test_cases_that_would_train_full_again_are_skipped(room):
     assert set(rows) == {"full"}
 
 
+@pytest.mark.slow
 def test_ablate_command_writes_one_table(room, tmp_path):
     out = tmp_path / "ablate"
     code = main(["ablate", str(room), "--out", str(out), "--iterations", "4", "--cases", "full,no-depth"])

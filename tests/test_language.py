@@ -110,6 +110,7 @@ def test_unknown_language_features_mode_is_rejected(scene):
         train(scene, TrainConfig(iterations=1, language_features="sparse"), progress=False)
 
 
+@pytest.mark.slow
 def test_language_training_fits_the_training_views(scene):
     # The random start fits the training views fastest (the photos' start trades some of that fit for
     # novel views: tests/test_initialisation.py); this test is about the language heads, which it

@@ -162,6 +162,7 @@ def scene(tmp_path_factory):
     return lf.load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=48, height=36, n_test=1))
 
 
+@pytest.mark.slow
 def test_training_with_every_regulariser_runs_and_is_recorded(scene) -> None:
     cfg = lf.TrainConfig(iterations=6, num_gaussians=300, init="random", drop_gamma=0.2)
     more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1}

@@ -34,6 +34,7 @@ def _train(scene, **cfg) -> LanguageField:
 # ---------------------------------------------------------------- determinism and progress
 
 
+@pytest.mark.slow
 def test_same_seed_and_config_give_identical_fields(scene) -> None:
     # Densification (with its random split samples) runs too, so it is covered by the check.
     cfg = dict(iterations=20, num_gaussians=300, seed=3, refine_start=5, refine_every=5, grad_threshold=1e-7)
@@ -45,12 +46,14 @@ def test_same_seed_and_config_give_identical_fields(scene) -> None:
         assert torch.equal(pa, pb), name
 
 
+@pytest.mark.slow
 def test_different_seeds_give_different_fields(scene) -> None:
     a = _train(scene, iterations=0, num_gaussians=300, seed=0)
     b = _train(scene, iterations=0, num_gaussians=300, seed=1)
     assert not torch.equal(a.splats["means"], b.splats["means"])
 
 
+@pytest.mark.slow
 def test_zero_iterations_returns_the_initial_field(scene) -> None:
     field = _train(scene, iterations=0, num_gaussians=300, seed=2, init="random")
     init = G.init_gaussians(np.asarray(field.meta["bounds"]), 300, seed=2)
@@ -71,6 +74,7 @@ def test_zero_iterations_from_the_photos_returns_their_start_points(scene) -> No
     assert field.meta["init"]["photo_points"] > 0
 
 
+@pytest.mark.slow
 def test_training_lowers_the_colour_loss(scene) -> None:
     before = _train(scene, iterations=0, num_gaussians=500)
     after = _train(scene, iterations=60, num_gaussians=500)
@@ -78,6 +82,7 @@ def test_training_lowers_the_colour_loss(scene) -> None:
     assert evaluate_psnr(after, scene, "test") > evaluate_psnr(before, scene, "test")
 
 
+@pytest.mark.slow
 def test_densification_changes_the_count_and_keeps_optimizers_in_step(scene, monkeypatch) -> None:
     captured: dict[str, torch.optim.Optimizer] = {}
     make_optimizers = T.make_optimizers
@@ -162,6 +167,7 @@ def test_negative_iterations_raise(scene) -> None:
         _train(scene, iterations=-1, num_gaussians=300)
 
 
+@pytest.mark.slow
 def test_opacity_penalty_fades_gaussians(scene) -> None:
     cfg = dict(iterations=30, num_gaussians=400, densify=False, seed=4)
     plain, penalised = _train(scene, lambda_opacity=0.0, **cfg), _train(scene, lambda_opacity=1.0, **cfg)
