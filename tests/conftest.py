@@ -26,3 +26,20 @@ def random_gaussians(n: int, channels: int, seed: int = 0, log_scale: float = -3
 @pytest.fixture
 def small_camera() -> Camera:
     return Camera.look_at((0.0, -3.0, 0.5), (0.0, 0.0, 0.0), width=40, height=30, fov_x_deg=60)
+
+
+@pytest.fixture(scope="session")
+def room_factory(tmp_path_factory):
+    """``room_factory(width, height, **kwargs)``: the built-in room (seed 0 unless given), generated once
+    per session for each set of arguments. Shared between modules: copy it before changing a file."""
+    from langfield.synthetic import make_room
+
+    made = {}
+
+    def room(width: int, height: int, **kwargs):
+        key = (width, height, tuple(sorted(kwargs.items())))
+        if key not in made:
+            made[key] = make_room(tmp_path_factory.mktemp("room"), width=width, height=height, **kwargs)
+        return made[key]
+
+    return room

@@ -15,15 +15,14 @@ from safetensors.torch import load_file
 from langfield import Camera, LanguageField, TrainConfig, load_scene, train
 from langfield.field import FORMAT_VERSION
 from langfield.io.ply import SH_C0, read_gaussian_ply
-from langfield.synthetic import make_room
 
 N = 500
 FIELD_FILES = ("field.safetensors", "field.json", "gaussians.ply", "text_embeddings.npz")  # room: a table
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=64, height=48))
+def scene(room_factory):
+    return load_scene(room_factory(64, 48))
 
 
 @pytest.fixture(scope="module")

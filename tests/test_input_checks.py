@@ -25,8 +25,8 @@ W, H = 48, 36
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory) -> Path:
-    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H, n_test=2)
+def scene_dir(room_factory) -> Path:
+    return room_factory(W, H, n_test=2)
 
 
 @pytest.fixture(scope="module")

@@ -29,7 +29,6 @@ from langfield.query import (
     make_query,
     text_encoder_for,
 )
-from langfield.synthetic import make_room
 from querying.evaluation import mask_iou
 from querying.relevancy import CANONICAL_PHRASES, choose_level, relevancy, relevancy_mask
 
@@ -38,8 +37,8 @@ PHRASES = ["sofa", "lamp", "table", "chair", "shelf", "rug", "wall", "floor"]
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory) -> Path:
-    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H)
+def scene_dir(room_factory) -> Path:
+    return room_factory(W, H)
 
 
 @pytest.fixture(scope="module")

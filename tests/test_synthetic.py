@@ -30,8 +30,8 @@ LAYOUT_0_DIGEST = "0d235cc9e5aa1df1"
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H)
+def scene(room_factory) -> Path:
+    return room_factory(W, H)
 
 
 def _frames(scene: Path) -> list[dict]:

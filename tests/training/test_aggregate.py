@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from langfield import TrainConfig, load_scene
-from langfield.synthetic import make_room
 from langfield.training.aggregate import aggregate_latents, with_latents
 from langfield.training.trainer import build_field, language_targets
 
@@ -14,8 +13,8 @@ W, H = 40, 30
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H))
+def scene(room_factory):
+    return load_scene(room_factory(W, H))
 
 
 @pytest.fixture(scope="module")

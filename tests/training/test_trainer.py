@@ -12,14 +12,13 @@ import torch
 
 from langfield import LanguageField, TrainConfig, load_scene, train
 from langfield.model import gaussians as G
-from langfield.synthetic import make_room
 from langfield.training import trainer as T
 from langfield.training.trainer import color_loss, evaluate_psnr
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=64, height=48)
+def scene_dir(room_factory):
+    return room_factory(64, 48)
 
 
 @pytest.fixture(scope="module")

@@ -10,15 +10,14 @@ import torch
 
 from langfield import LanguageField, TrainConfig, load_scene, train
 from langfield.model.language import language_loss
-from langfield.synthetic import make_room
 from langfield.training.trainer import language_targets
 
 GEOMETRY = ("means", "log_scales", "quats", "opacity_logits")
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=48, height=36))
+def scene(room_factory):
+    return load_scene(room_factory(48, 36))
 
 
 @pytest.fixture(scope="module", params=["hashgrid", "per-gaussian"])

@@ -17,7 +17,6 @@ import torch
 
 from langfield import LanguageField, load_scene
 from langfield.cli import main
-from langfield.synthetic import make_room
 
 W, H = 64, 48
 REPORT_KEYS = {
@@ -41,8 +40,8 @@ REPORT_KEYS = {
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H)
+def scene_dir(room_factory):
+    return room_factory(W, H)
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,6 @@ from langfield import LanguageField, TrainConfig, evaluate, load_scene
 from langfield.eval.evaluate import write_report
 from langfield.eval.geometry import selection_scores
 from langfield.io.field_meta import FieldMeta
-from langfield.synthetic import make_room
 from langfield.training.trainer import build_field, scene_bounds
 
 W, H = 64, 48
@@ -49,8 +48,8 @@ class CodebookDecoder(LanguageDecoder):
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory) -> Path:
-    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H)
+def scene_dir(room_factory) -> Path:
+    return room_factory(W, H)
 
 
 def ground_truth_field(scene, shift: int = 0) -> LanguageField:

@@ -13,14 +13,13 @@ from langfield.cli import main
 from langfield.eval.geometry import aligned_depth_error, count_floaters, depth_errors
 from langfield.field import LanguageField
 from langfield.io.scene import load_scene
-from langfield.synthetic import make_room
 from langfield.training.lad import LADTarget, depth_loss, lad_loss
 from langfield.training.trainer import TrainConfig, train
 
 
 @pytest.fixture(scope="module")
-def room(tmp_path_factory) -> Path:
-    return make_room(tmp_path_factory.mktemp("room"), seed=0, width=64, height=48, n_test=2)
+def room(room_factory) -> Path:
+    return room_factory(64, 48, n_test=2)
 
 
 @pytest.fixture(scope="module")

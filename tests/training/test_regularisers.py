@@ -158,8 +158,8 @@ def test_depth_smoothness_is_scale_free_and_allows_steps_at_image_edges() -> Non
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return lf.load_scene(make_room(tmp_path_factory.mktemp("room"), seed=0, width=48, height=36, n_test=1))
+def scene(room_factory):
+    return lf.load_scene(room_factory(48, 36, n_test=1))
 
 
 @pytest.mark.slow

@@ -11,7 +11,7 @@ import pytest
 import encoders.classical as classical
 from encoders.protocols import Segmenter
 
-FERN = Path(__file__).resolve().parents[2] / "shared" / "data" / "llff_fern" / "images_8" / "image000.png"
+FERN = Path(__file__).resolve().parents[3] / "shared" / "data" / "llff_fern" / "images_8" / "image000.png"
 needs_contrib = pytest.mark.skipif(
     not hasattr(cv2, "ximgproc"), reason="needs opencv-contrib-python-headless (cv2.ximgproc)"
 )

@@ -17,7 +17,7 @@ import torch
 from langfield.camera import Camera
 from langfield.io.scene import SceneError, load_scene
 
-DATA = Path(os.environ.get("LANGFIELD_TEST_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+DATA = Path(os.environ.get("LANGFIELD_TEST_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
 LEGO, FERN = DATA / "lego_sparse", DATA / "llff_fern"
 needs_lego = pytest.mark.skipif(not LEGO.is_dir(), reason="lego_sparse test data not found")
 needs_fern = pytest.mark.skipif(not FERN.is_dir(), reason="llff_fern test data not found")
