@@ -12,6 +12,7 @@ pruning (:mod:`langfield.training.lop`, eq. 14-16) every ``lop_every`` iteration
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import math
 import time
@@ -711,27 +712,37 @@ def evaluate_psnr(field: LanguageField, scene: Scene, split: str = "test") -> fl
     return float(np.mean(values))
 
 
-def train(
-    scene: Scene,
-    cfg: TrainConfig | None = None,
-    *,
-    progress: bool = True,
-    callback: Callback | None = None,
-    callback_every: int = 0,
-) -> LanguageField:
-    """Trains a field on ``scene``'s training views.
+@dataclass
+class _Run:
+    """What one training run reads and updates: built from the scene once, every file read and checked,
+    before the first iteration (:func:`_prepare`)."""
 
-    Args:
-        scene: a loaded scene with a "train" split.
-        cfg: settings; ``TrainConfig()`` if None.
-        progress: show a tqdm bar with the loss and the Gaussian count.
-        callback: called as ``callback(step, train_seconds, field)`` every ``callback_every`` steps and
-            at the end; its own time is not counted as training time.
+    cfg: TrainConfig  # with the run's length resolved
+    scene: Scene
+    field: LanguageField
+    targets: LanguageTargets | None
+    refiner: Any  # an OnnxImageRefiner, or None
+    cameras: dict[str, Camera]
+    views: dict[str, ViewTargets]
+    half_views: dict[str, ViewTargets]  # the same at half size, for the first half_steps
+    stereo: list  # the start's stereo surfaces, for carving free space
+    optimizers: dict[str, torch.optim.Optimizer]
+    strategy: DensifyStrategy
+    state: dict[str, Any]
+    extent: float
+    means_lr0: float
+    half_steps: int
+    language_steps: int
+    use_lop: bool
+    rng: np.random.Generator
+    drop_generator: torch.Generator
+    carved: list[dict[str, int]] = dataclasses.field(default_factory=list)
+    lop_rounds: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    rendered: dict[str, tuple[Camera, Tensor, Tensor]] = dataclasses.field(default_factory=dict)
 
-    Returns:
-        The trained :class:`LanguageField`; ``field.meta`` records timings and sizes.
-    """
-    cfg = cfg or TrainConfig()
+
+def _prepare(scene: Scene, cfg: TrainConfig, progress: bool) -> _Run:
+    """Checks the inputs, reads every target and builds the field, its optimizers and densification."""
     check_inputs(scene, cfg, progress=progress)
     length = training_length(cfg.iterations, len(scene.names("train")))
     cfg = replace(cfg, iterations=length["iterations"])
@@ -746,15 +757,11 @@ def train(
     start = scene_start(scene, cfg)
     field = build_field(scene, cfg, targets, start)
     stereo = _stereo_surfaces(scene, start) if cfg.carve_free_space else []
-    carved: list[dict[str, int]] = []
     field.meta["depth"] = None if depth_in is None else {"lad": cfg.lad, "kind": scene.depth_kind}
     field.meta["training_length"] = length
-    use_lop = cfg.lop and targets is not None and cfg.lop_every > 0
-    lop_rounds: list[dict[str, Any]] = []
     bounds = field.meta.bounds
     extent = float(np.linalg.norm(bounds[1] - bounds[0]) / 2)
     optimizers = make_optimizers(field, extent, cfg)
-    means_lr0 = optimizers["means"].param_groups[0]["lr"]
     strategy = DensifyStrategy(
         refine_start=cfg.refine_start,
         refine_every=cfg.refine_every,
@@ -764,7 +771,6 @@ def train(
         max_gaussians=cfg.max_gaussians or 4 * field.num_gaussians,
         prune_scale3d=None,  # DNGaussian keeps large Gaussians; 3DGS prunes them only after opacity resets
     )
-    state = strategy.initialize_state(field.splats)
     cameras = {name: scene.camera(name) for name in train_names}
     coverage, source = empty_space(scene, cfg)
     field.meta["empty_space"] = {
@@ -785,104 +791,159 @@ def train(
     }
     # The first half_resolution_until of the run renders every view at half its width and height.
     half_steps = round(cfg.half_resolution_until * cfg.iterations)
-    half_views = {name: v.half_size() for name, v in views.items()} if half_steps > 0 else {}
-    language_steps = round(cfg.language_start * cfg.iterations)
-    rng = np.random.default_rng(cfg.seed)
-    drop_generator = torch.Generator().manual_seed(cfg.seed)
+    return _Run(
+        cfg=cfg,
+        scene=scene,
+        field=field,
+        targets=targets,
+        refiner=refiner,
+        cameras=cameras,
+        views=views,
+        half_views={name: v.half_size() for name, v in views.items()} if half_steps > 0 else {},
+        stereo=stereo,
+        optimizers=optimizers,
+        strategy=strategy,
+        state=strategy.initialize_state(field.splats),
+        extent=extent,
+        means_lr0=optimizers["means"].param_groups[0]["lr"],
+        half_steps=half_steps,
+        language_steps=round(cfg.language_start * cfg.iterations),
+        use_lop=cfg.lop and targets is not None and cfg.lop_every > 0,
+        rng=np.random.default_rng(cfg.seed),
+        drop_generator=torch.Generator().manual_seed(cfg.seed),
+    )
+
+
+def _step_loss(run: _Run, step: int, name: str) -> tuple[Tensor, Render, Camera]:
+    """Renders training view ``name`` at ``step`` and returns the step's loss, the render and its camera."""
+    cfg, field = run.cfg, run.field
+    view = run.half_views[name] if step < run.half_steps else run.views[name]
+    cam = view.camera
+    # 3DGS's exponential decay of the position learning rate to 1 % over the run.
+    frac = step / max(cfg.iterations - 1, 1)
+    run.optimizers["means"].param_groups[0]["lr"] = run.means_lr0 * math.exp(math.log(0.01) * frac)
+    keep = None
+    if cfg.drop_gamma > 0:
+        rate = cfg.drop_gamma * step / max(cfg.iterations, 1)
+        keep = drop_compensation(field.num_gaussians, rate, run.drop_generator)
+    behind = None
+    cover = view.coverage
+    if cfg.random_background and run.scene.background is None:
+        behind = torch.rand(3, generator=run.drop_generator)
+    target = view.image
+    if cover is not None and behind is not None:  # a photo's backdrop shows the random colour
+        target = backdrop_target(view.image, cover, behind)
+    grid = field.grid_features()  # read once, shared by this step's renders
+    out = field.render(
+        cam,
+        backend=cfg.backend,
+        hard_depth=view.depth is not None,
+        language=step >= run.language_steps,
+        opacity_scale=keep,
+        background=behind,
+        grid=grid,
+    )
+    loss = color_loss(out.rgb, target, cfg.lambda_dssim)
+    if cover is not None and cfg.lambda_empty > 0:
+        loss = loss + cfg.lambda_empty * (out.alpha * (1.0 - cover)).mean()
+    virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
+    if cfg.lambda_virtual > 0 and virtual_step:
+        loss = loss + cfg.lambda_virtual * _virtual_view_loss(
+            field, cam, target, out, keep, cfg, run.rng, grid
+        )
+    pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0
+    if run.refiner is not None and pseudo_step:
+        pseudo = _pseudo_view_loss(field, run.refiner, list(run.cameras.values()), cfg, run.rng, grid)
+        loss = loss + cfg.lambda_refiner * pseudo
+    return loss + _geometry_and_language_loss(run, name, view, out), out, cam
+
+
+def _geometry_and_language_loss(run: _Run, name: str, view: ViewTargets, out: Render) -> Tensor | float:
+    """The step's terms on the rendered depth, the scales, the latents and the opacities."""
+    cfg, field, cam = run.cfg, run.field, view.camera
+    loss: Tensor | float = 0.0
+    if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0:
+        covered = out.alpha.detach() > 0.5
+        depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
+    if cfg.lambda_visibility > 0:
+        loss = loss + cfg.lambda_visibility * _visibility_loss(
+            depth_z, covered, cam, name, run.rendered, cfg.visibility_tolerance
+        )
+        run.rendered[name] = (cam, depth_z.detach(), covered)
+    if cfg.lambda_smooth > 0:
+        loss = loss + cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered)
+    if cfg.lambda_anisotropy > 0:
+        loss = loss + cfg.lambda_anisotropy * anisotropy_loss(
+            field.splats["log_scales"], cfg.anisotropy_ratio
+        )
+    if view.latents is not None and out.latents is not None:
+        loss = loss + cfg.lambda_language * language_loss(out.latents, view.latents, view.valid)
+    if view.depth is not None:
+        loss = loss + cfg.lambda_depth * depth_loss(
+            view.depth, out.depth_hard, out.depth, cfg.lambda_sa, lad=cfg.lad
+        )
+    if cfg.lambda_opacity > 0:
+        loss = loss + cfg.lambda_opacity * G.opacities(field.splats).mean()
+    return loss
+
+
+def _update(run: _Run, step: int, out: Render, cam: Camera, bar: tqdm) -> None:
+    """After the backward pass: densification, the optimizer steps, opacity decay and LOP."""
+    cfg, field = run.cfg, run.field
+    if cfg.densify:
+        info = {"means2d": out.means2d, "radii": out.radii, "width": cam.width, "height": cam.height}
+        run.strategy.step_post_backward(field.splats, run.optimizers, run.state, step, info, run.extent)
+    for opt in run.optimizers.values():
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+    if cfg.opacity_decay < 1.0 and step >= cfg.refine_start:
+        with torch.no_grad():
+            logits = field.splats["opacity_logits"]
+            logits.copy_(torch.logit(torch.sigmoid(logits) * cfg.opacity_decay, eps=1e-6))
+    if run.use_lop and (step + 1) % cfg.lop_every == 0:
+        run.lop_rounds.append(_prune_outliers(field, run.targets, run.optimizers, run.state, cfg, step + 1))
+        bar.write(
+            f"LOP at iteration {step + 1}: removed {run.lop_rounds[-1]['removed']} of "
+            f"{run.lop_rounds[-1]['before']} Gaussians"
+        )
+
+
+def train(
+    scene: Scene,
+    cfg: TrainConfig | None = None,
+    *,
+    progress: bool = True,
+    callback: Callback | None = None,
+    callback_every: int = 0,
+) -> LanguageField:
+    """Trains a field on ``scene``'s training views.
+
+    Args:
+        scene: a loaded scene with a "train" split.
+        cfg: settings; ``TrainConfig()`` if None.
+        progress: show a tqdm bar with the loss and the Gaussian count.
+        callback: called as ``callback(step, train_seconds, field)`` every ``callback_every`` steps and
+            at the end; its own time is not counted as training time.
+
+    Returns:
+        The trained :class:`LanguageField`; ``field.meta`` records timings and sizes.
+    """
+    run = _prepare(scene, cfg or TrainConfig(), progress)
+    cfg, field, names = run.cfg, run.field, list(run.views)
     order: list[str] = []
-    rendered: dict[str, tuple[Camera, Tensor, Tensor]] = {}  # each view's last z-depth, coverage
     train_seconds = 0.0
     bar = tqdm(total=cfg.iterations, disable=not progress, desc="train", dynamic_ncols=True, leave=False)
     for step in range(cfg.iterations):
         t0 = time.perf_counter()
-        if stereo and step % cfg.refine_every == 0:
-            carved.append(_carve_free_space(field, stereo, optimizers, state, cfg.carve_tolerance, step))
+        if run.stereo and step % cfg.refine_every == 0:
+            run.carved.append(
+                _carve_free_space(field, run.stereo, run.optimizers, run.state, cfg.carve_tolerance, step)
+            )
         if not order:
-            order = [train_names[i] for i in rng.permutation(len(train_names))]
-        name = order.pop()
-        view = half_views[name] if step < half_steps else views[name]
-        cam = view.camera
-        # 3DGS's exponential decay of the position learning rate to 1 % over the run.
-        frac = step / max(cfg.iterations - 1, 1)
-        optimizers["means"].param_groups[0]["lr"] = means_lr0 * math.exp(math.log(0.01) * frac)
-
-        keep = None
-        if cfg.drop_gamma > 0:
-            rate = cfg.drop_gamma * step / max(cfg.iterations, 1)
-            keep = drop_compensation(field.num_gaussians, rate, drop_generator)
-        behind = None
-        cover = view.coverage
-        if cfg.random_background and scene.background is None:
-            behind = torch.rand(3, generator=drop_generator)
-        target = view.image
-        if cover is not None and behind is not None:  # a photo's backdrop shows the random colour
-            target = backdrop_target(view.image, cover, behind)
-        grid = field.grid_features()  # read once, shared by this step's renders
-        out = field.render(
-            cam,
-            backend=cfg.backend,
-            hard_depth=view.depth is not None,
-            language=step >= language_steps,
-            opacity_scale=keep,
-            background=behind,
-            grid=grid,
-        )
-        loss = color_loss(out.rgb, target, cfg.lambda_dssim)
-        if cover is not None and cfg.lambda_empty > 0:
-            loss = loss + cfg.lambda_empty * (out.alpha * (1.0 - cover)).mean()
-        virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
-        if cfg.lambda_virtual > 0 and virtual_step:
-            loss = loss + cfg.lambda_virtual * _virtual_view_loss(
-                field, cam, target, out, keep, cfg, rng, grid
-            )
-        pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0
-        if refiner is not None and pseudo_step:
-            pseudo = _pseudo_view_loss(field, refiner, list(cameras.values()), cfg, rng, grid)
-            loss = loss + cfg.lambda_refiner * pseudo
-        if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0:
-            covered = out.alpha.detach() > 0.5
-            depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
-        if cfg.lambda_visibility > 0:
-            loss = loss + cfg.lambda_visibility * _visibility_loss(
-                depth_z, covered, cam, name, rendered, cfg.visibility_tolerance
-            )
-            rendered[name] = (cam, depth_z.detach(), covered)
-        if cfg.lambda_smooth > 0:
-            loss = loss + cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered)
-        if cfg.lambda_anisotropy > 0:
-            loss = loss + cfg.lambda_anisotropy * anisotropy_loss(
-                field.splats["log_scales"], cfg.anisotropy_ratio
-            )
-        if view.latents is not None and out.latents is not None:
-            loss = loss + cfg.lambda_language * language_loss(out.latents, view.latents, view.valid)
-        if view.depth is not None:
-            loss = loss + cfg.lambda_depth * depth_loss(
-                view.depth, out.depth_hard, out.depth, cfg.lambda_sa, lad=cfg.lad
-            )
-        if cfg.lambda_opacity > 0:
-            loss = loss + cfg.lambda_opacity * G.opacities(field.splats).mean()
+            order = [names[i] for i in run.rng.permutation(len(names))]
+        loss, out, cam = _step_loss(run, step, order.pop())
         loss.backward()
-        if cfg.densify:
-            info = {
-                "means2d": out.means2d,
-                "radii": out.radii,
-                "width": cam.width,
-                "height": cam.height,
-            }
-            strategy.step_post_backward(field.splats, optimizers, state, step, info, extent)
-        for opt in optimizers.values():
-            opt.step()
-            opt.zero_grad(set_to_none=True)
-        if cfg.opacity_decay < 1.0 and step >= cfg.refine_start:
-            with torch.no_grad():
-                logits = field.splats["opacity_logits"]
-                logits.copy_(torch.logit(torch.sigmoid(logits) * cfg.opacity_decay, eps=1e-6))
-        if use_lop and (step + 1) % cfg.lop_every == 0:
-            lop_rounds.append(_prune_outliers(field, targets, optimizers, state, cfg, step + 1))
-            bar.write(
-                f"LOP at iteration {step + 1}: removed {lop_rounds[-1]['removed']} of "
-                f"{lop_rounds[-1]['before']} Gaussians"
-            )
+        _update(run, step, out, cam, bar)
         train_seconds += time.perf_counter() - t0
         bar.update(1)
         if step % 10 == 0:
@@ -896,8 +957,10 @@ def train(
             callback(step + 1, train_seconds, field)
     bar.close()
     field.meta.update(
-        carved={"removed": sum(c["removed"] for c in carved), "rounds": len(carved)} if stereo else None,
-        lop=lop_rounds if use_lop else None,
+        carved={"removed": sum(c["removed"] for c in run.carved), "rounds": len(run.carved)}
+        if run.stereo
+        else None,
+        lop=run.lop_rounds if run.use_lop else None,
         train_seconds=train_seconds,
         iterations=cfg.iterations,
         iterations_per_second=cfg.iterations / train_seconds if train_seconds > 0 else None,
