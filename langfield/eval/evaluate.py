@@ -69,11 +69,7 @@ def evaluate(
         ValueError: a labelled phrase the text encoder does not know (the message names it); with
             ``oracle``, a field without language or a labelled view without a feature cache.
     """
-    views: list[dict[str, Any]] = []
-    cosines: list[list[float]] = []
     save = Path(save_dir) if save_dir is not None else None
-    sheet_tiles: list[np.ndarray] = []
-    sheet_labels: list[str] = []
     names = scene.names(split)
     if oracle:
         check_oracle(field, scene, names)
@@ -81,43 +77,25 @@ def evaluate(
     embeddings = _label_embeddings(field, labels, text_encoder, scene)
     # Before any render: an object name the text encoder lacks stops the evaluation at once.
     selection = selection_scores(field, scene, text_encoder=text_encoder) if embeddings is not None else None
-    oracle_records: list[dict[str, float | bool]] = []
+    views: list[dict[str, Any]] = []
+    cosines: list[list[float]] = []
+    sheet_tiles: list[np.ndarray] = []
+    sheet_labels: list[str] = []
     with torch.no_grad():
         for name in names:
-            out = field.render(scene.camera(name))
-            target = torch.from_numpy(scene.image(name))
-            has_cache = out.latents is not None and scene.feature_paths(name) is not None
-            scored = embeddings is not None and out.latents is not None and bool(labels[name])
-            decoded = field.decode_levels(out.latents) if has_cache or scored else None  # [3, H, W, 512]
-            truth = true_features(scene, name) if has_cache else None  # read once per view
-            if truth is not None:
-                cosines.append(feature_cosine(decoded, truth))
-            queries, extra = {}, {}
-            if scored:
-                phrases, phrase_embeddings, canonical_embeddings = embeddings
-                maps = relevancy(decoded, phrase_embeddings, canonical_embeddings)  # [P, 3, H, W]
-                maps = fill_empty(maps, out.alpha)
-                queries = score_queries(maps, phrases, labels[name])
-                if save is not None:
-                    write_query_sheet(save, name, out.rgb, maps, phrases, labels[name], queries)
-                if oracle:  # check_oracle made sure every labelled view has its cache
-                    true_maps = relevancy(truth, phrase_embeddings, canonical_embeddings)
-                    true_maps = fill_empty(true_maps, masked_pixels(truth).float())
-                    extra["oracle_queries"] = score_queries(true_maps, phrases, labels[name])
-                    oracle_records += extra["oracle_queries"].values()
-            record = {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target)}
-            object_mask = scene.object_mask(name)
-            if object_mask is not None:
-                record.update(masked_scores(out.rgb, target, torch.from_numpy(object_mask)))
-            views.append({**record, "queries": queries, **extra})
-            if save is not None:
-                write_render_pngs(save, name, out.rgb.numpy(), out.depth.numpy(), out.alpha.numpy())
-                sheet_tiles += _view_tiles(out, target)
-                sheet_labels += [f"{name} {record['PSNR']:.2f} dB", "depth", "ground truth"]
+            record, cosine, tiles = _score_view(
+                field, scene, name, labels.get(name), embeddings, oracle, save
+            )
+            views.append(record)
+            if cosine is not None:
+                cosines.append(cosine)
+            sheet_tiles += tiles
+            sheet_labels += [f"{name} {record['PSNR']:.2f} dB", "depth", "ground truth"] if tiles else []
     if save is not None and views:
         write_contact_sheet(save / "views_sheet.png", sheet_tiles, sheet_labels, columns=3)
     m = field.meta
     summary = summarize_queries(q for v in views for q in v["queries"].values())
+    oracle_records = [q for v in views for q in v.get("oracle_queries", {}).values()]
 
     def mean(key: str) -> float | None:
         values = [v[key] for v in views if key in v]
@@ -141,6 +119,48 @@ def evaluate(
         "selection_3d": selection,
         "views": views,
     }
+
+
+def _score_view(
+    field: LanguageField,
+    scene: Scene,
+    name: str,
+    labels: dict | None,
+    embeddings: tuple | None,
+    oracle: bool,
+    save: Path | None,
+) -> tuple[dict[str, Any], list[float] | None, list[np.ndarray]]:
+    """One view of :func:`evaluate`: its record (image scores, ``queries``, ``oracle_queries`` with
+    ``oracle``), its per-level feature cosine (None without a feature cache) and, with ``save``, its
+    contact-sheet tiles (its PNGs and query sheet written)."""
+    out = field.render(scene.camera(name))
+    target = torch.from_numpy(scene.image(name))
+    has_cache = out.latents is not None and scene.feature_paths(name) is not None
+    scored = embeddings is not None and out.latents is not None and bool(labels)
+    decoded = field.decode_levels(out.latents) if has_cache or scored else None  # [3, H, W, 512]
+    truth = true_features(scene, name) if has_cache else None  # read once per view
+    cosine = feature_cosine(decoded, truth) if truth is not None else None
+    queries, extra = {}, {}
+    if scored:
+        phrases, phrase_embeddings, canonical_embeddings = embeddings
+        maps = relevancy(decoded, phrase_embeddings, canonical_embeddings)  # [P, 3, H, W]
+        maps = fill_empty(maps, out.alpha)
+        queries = score_queries(maps, phrases, labels)
+        if save is not None:
+            write_query_sheet(save, name, out.rgb, maps, phrases, labels, queries)
+        if oracle:  # check_oracle made sure every labelled view has its cache
+            true_maps = relevancy(truth, phrase_embeddings, canonical_embeddings)
+            true_maps = fill_empty(true_maps, masked_pixels(truth).float())
+            extra["oracle_queries"] = score_queries(true_maps, phrases, labels)
+    record = {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target)}
+    object_mask = scene.object_mask(name)
+    if object_mask is not None:
+        record.update(masked_scores(out.rgb, target, torch.from_numpy(object_mask)))
+    tiles: list[np.ndarray] = []
+    if save is not None:
+        write_render_pngs(save, name, out.rgb.numpy(), out.depth.numpy(), out.alpha.numpy())
+        tiles = _view_tiles(out, target)
+    return {**record, "queries": queries, **extra}, cosine, tiles
 
 
 def check_oracle(field: LanguageField, scene: Scene, names: list[str]) -> None:
