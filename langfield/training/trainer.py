@@ -243,97 +243,118 @@ CONFIG_FLAGS = {
 def check_config(cfg: TrainConfig) -> None:
     """Rejects a setting no training can use, before any work: one ValueError naming the setting
     (and its ``langfield train`` flag)."""
+    c = _ConfigCheck(cfg)
+    _check_start_and_model(c, cfg)
+    _check_densification_and_language(c, cfg)
+    _check_regularisers(c, cfg)
 
-    def fail(name: str, expected: str) -> None:
+
+class _ConfigCheck:
+    """The kinds of value a TrainConfig setting can be; each failure names the setting and its flag."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+
+    def fail(self, name: str, expected: str) -> None:
         flag = f" ({CONFIG_FLAGS[name]})" if name in CONFIG_FLAGS else ""
-        raise ValueError(f"TrainConfig.{name}{flag} must be {expected}, got {getattr(cfg, name)!r}")
+        raise ValueError(f"TrainConfig.{name}{flag} must be {expected}, got {getattr(self.cfg, name)!r}")
 
-    def whole(name: str, low: int, optional: bool = False) -> None:
-        value = getattr(cfg, name)
+    def whole(self, name: str, low: int, optional: bool = False) -> None:
+        value = getattr(self.cfg, name)
         if optional and value is None:
             return
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-            fail(name, f"a whole number >= {low}" + (" (or None: sized to the scene)" if optional else ""))
+            self.fail(
+                name, f"a whole number >= {low}" + (" (or None: sized to the scene)" if optional else "")
+            )
 
-    def number(name: str, low: float, high: float = math.inf, open_low: bool = False) -> None:
-        value = getattr(cfg, name)
+    def number(self, name: str, low: float, high: float = math.inf, open_low: bool = False) -> None:
+        value = getattr(self.cfg, name)
         ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
         ok = ok and math.isfinite(value)
         if not ok or value < low or (open_low and value == low) or value > high:
             lower = f"> {low}" if open_low else f">= {low}"
-            fail(name, f"a finite number {lower}" + ("" if high == math.inf else f" and <= {high}"))
+            self.fail(name, f"a finite number {lower}" + ("" if high == math.inf else f" and <= {high}"))
 
-    whole("iterations", 0, optional=True)
-    whole("seed", 0)
+
+def _check_start_and_model(c: _ConfigCheck, cfg: TrainConfig) -> None:
+    c.whole("iterations", 0, optional=True)
+    c.whole("seed", 0)
     if cfg.backend not in ("auto", "torch", "cpu"):
-        fail("backend", "'auto', 'torch' or 'cpu'")
+        c.fail("backend", "'auto', 'torch' or 'cpu'")
     if cfg.init not in INIT_METHODS:
-        fail("init", " or ".join(repr(m) for m in INIT_METHODS))
-    number("init_fill", 0.0, 10.0)
-    whole("num_gaussians", 1, optional=True)
-    whole("max_gaussians", 1, optional=True)
+        c.fail("init", " or ".join(repr(m) for m in INIT_METHODS))
+    c.number("init_fill", 0.0, 10.0)
+    c.whole("num_gaussians", 1, optional=True)
+    c.whole("max_gaussians", 1, optional=True)
     if cfg.log2_table_size is not None and not (
         isinstance(cfg.log2_table_size, int) and 8 <= cfg.log2_table_size <= 30
     ):
-        fail("log2_table_size", "a whole number in [8, 30] (or None: sized to the scene)")
+        c.fail("log2_table_size", "a whole number in [8, 30] (or None: sized to the scene)")
     if cfg.bounds is not None:
         try:
             box = np.asarray(cfg.bounds, dtype=np.float64)
         except (TypeError, ValueError):
             box = np.zeros(0)
         if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] <= box[0]).any():
-            fail("bounds", "((xmin, ymin, zmin), (xmax, ymax, zmax)) with max > min")
-    whole("refine_start", 0)
-    whole("refine_every", 1)
-    whole("refine_stop", 0, optional=True)
-    number("grad_threshold", 0.0, open_low=True)
-    number("prune_opacity", 0.0, 1.0)
-    whole("color_hidden", 1)
-    whole("color_freqs", 0)
+            c.fail("bounds", "((xmin, ymin, zmin), (xmax, ymax, zmax)) with max > min")
+
+
+def _check_densification_and_language(c: _ConfigCheck, cfg: TrainConfig) -> None:
+    c.whole("refine_start", 0)
+    c.whole("refine_every", 1)
+    c.whole("refine_stop", 0, optional=True)
+    c.number("grad_threshold", 0.0, open_low=True)
+    c.number("prune_opacity", 0.0, 1.0)
+    c.whole("color_hidden", 1)
+    c.whole("color_freqs", 0)
     for name in ("grid_lr", "mlp_lr", "per_gaussian_language_lr"):
-        number(name, 0.0, open_low=True)
+        c.number(name, 0.0, open_low=True)
     if cfg.language_features not in LANGUAGE_FEATURES:
-        fail("language_features", " or ".join(map(repr, LANGUAGE_FEATURES)))
-    whole("language_hidden", 1)
-    number("language_grid_scale", 0.0, 1.0, open_low=True)
-    whole("autoencoder_iterations", 1)
-    number("lambda_dssim", 0.0, 1.0)
+        c.fail("language_features", " or ".join(map(repr, LANGUAGE_FEATURES)))
+    c.whole("language_hidden", 1)
+    c.number("language_grid_scale", 0.0, 1.0, open_low=True)
+    c.whole("autoencoder_iterations", 1)
+    c.number("lambda_dssim", 0.0, 1.0)
     for name in ("lambda_language", "lambda_depth", "lambda_sa", "lambda_opacity"):
-        number(name, 0.0)
+        c.number(name, 0.0)
     for name in ("densify", "lad", "lop", "random_background", "dark_backdrop", "carve_free_space"):
         if not isinstance(getattr(cfg, name), bool):
-            fail(name, "True or False")
+            c.fail(name, "True or False")
     if cfg.carve_free_space and cfg.init not in ("dense", "depth"):
-        fail("carve_free_space", "False unless init is 'dense' or 'depth' (it carves with their stereo)")
-    number("drop_gamma", 0.0, 0.9)
-    number("lambda_virtual", 0.0)
-    number("virtual_baseline", 0.0, 1.0, open_low=True)
+        c.fail("carve_free_space", "False unless init is 'dense' or 'depth' (it carves with their stereo)")
+
+
+def _check_regularisers(c: _ConfigCheck, cfg: TrainConfig) -> None:
+    c.number("drop_gamma", 0.0, 0.9)
+    c.number("lambda_virtual", 0.0)
+    c.number("virtual_baseline", 0.0, 1.0, open_low=True)
     if cfg.virtual_directions not in ("horizontal", "any"):
-        fail("virtual_directions", "'horizontal' or 'any'")
-    whole("virtual_start", 0)
-    whole("virtual_every", 1)
-    number("virtual_resolution", 0.0, 1.0, open_low=True)
-    number("lambda_smooth", 0.0)
-    number("lambda_visibility", 0.0)
-    number("visibility_tolerance", 0.0, 1.0)
-    number("carve_tolerance", 0.0, 1.0)
-    number("half_resolution_until", 0.0, 1.0)
-    number("language_start", 0.0, 1.0, open_low=False)
-    number("autoencoder_spread", 0.0, open_low=False)
+        c.fail("virtual_directions", "'horizontal' or 'any'")
+    c.whole("virtual_start", 0)
+    c.whole("virtual_every", 1)
+    c.number("virtual_resolution", 0.0, 1.0, open_low=True)
+    c.number("lambda_smooth", 0.0)
+    c.number("lambda_visibility", 0.0)
+    c.number("visibility_tolerance", 0.0, 1.0)
+    c.number("carve_tolerance", 0.0, 1.0)
+    c.number("half_resolution_until", 0.0, 1.0)
+    c.number("language_start", 0.0, 1.0, open_low=False)
+    c.number("autoencoder_spread", 0.0, open_low=False)
     if cfg.language_decode not in LANGUAGE_DECODES:
-        fail("language_decode", "'codebook' or 'continuous'")
-    number("opacity_decay", 0.0, 1.0, open_low=True)
-    number("lambda_empty", 0.0)
-    number("lambda_anisotropy", 0.0)
-    number("anisotropy_ratio", 1.0)
+        c.fail("language_decode", "'codebook' or 'continuous'")
+    c.number("opacity_decay", 0.0, 1.0, open_low=True)
+    c.number("lambda_empty", 0.0)
+    c.number("lambda_anisotropy", 0.0)
+    c.number("anisotropy_ratio", 1.0)
     if cfg.refiner is not None and not isinstance(cfg.refiner, str):
-        fail("refiner", "a model folder (a string) or None")
-    number("lambda_refiner", 0.0)
-    whole("refiner_every", 1)
-    whole("refiner_start", 0)
-    whole("lop_every", 0)
-    whole("lop_gamma", 1)
-    number("lop_tau", 0.0, 1.0, open_low=True)
+        c.fail("refiner", "a model folder (a string) or None")
+    c.number("lambda_refiner", 0.0)
+    c.whole("refiner_every", 1)
+    c.whole("refiner_start", 0)
+    c.whole("lop_every", 0)
+    c.whole("lop_gamma", 1)
+    c.number("lop_tau", 0.0, 1.0, open_low=True)
 
 
 Callback = Callable[[int, float, LanguageField], None]
