@@ -366,16 +366,12 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
     with atomic_path(json_path) as tmp:
         tmp.write_text(json.dumps(report, indent=2))
     lines = ["# langfield evaluation", ""]
-
-    def fmt(v: Any, digits: int = 3) -> str:
-        return "n/a" if v is None else (f"{v:.{digits}f}" if isinstance(v, float) else str(v))
-
     lines += [
         "| PSNR | SSIM | mIoU | mAcc | train s | iterations | it/s | Gaussians | field bytes | backend |",
         "|---|---|---|---|---|---|---|---|---|---|",
         "| "
         + " | ".join(
-            fmt(report[k], 2 if k in ("PSNR", "train_seconds", "iterations_per_second") else 3)
+            _fmt(report[k], 2 if k in ("PSNR", "train_seconds", "iterations_per_second") else 3)
             for k in (
                 "PSNR",
                 "SSIM",
@@ -392,32 +388,7 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
         + " |",
         "",
     ]
-    oracle = report.get("oracle")
-    if oracle:
-        lines += [
-            "Oracle (the same queries on each view's own mask features, the query pipeline's ceiling): "
-            f"mIoU {fmt(oracle['mIoU'])}, mAcc {fmt(oracle['mAcc'])}; the field reaches "
-            f"{fmt(oracle['ratio'], 2)} of its mIoU.",
-            "",
-        ]
-    selection = report.get("selection_3d")
-    if selection and selection["precision"] is not None:
-        lines += [
-            f"3D selection (`field.query(o).gaussians()` against each object's surface, within "
-            f"{selection['tolerance']:.3f}): precision {fmt(selection['precision'])}, recall "
-            f"{fmt(selection['recall'])}; precision among the selected Gaussians that lie on a surface "
-            f"{fmt(selection['surface_precision'])} ({fmt(selection['off_surface'])} of all Gaussians "
-            "lie on none).",
-            "",
-            "| object | precision | recall | surface precision | selected | the object's Gaussians |",
-            "|---|---|---|---|---|---|",
-        ]
-        lines += [
-            f"| {name} | {fmt(o['precision'])} | {fmt(o['recall'])} | {fmt(o['surface_precision'])} "
-            f"| {o['selected']} | {o['gaussians']} |"
-            for name, o in selection["objects"].items()
-        ]
-        lines.append("")
+    lines += _oracle_and_selection_lines(report)
     lines += [
         "| view | PSNR | SSIM | mIoU | mAcc |",
         "|---|---|---|---|---|",
@@ -426,28 +397,70 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
         per_view = summarize_queries(v["queries"].values())
         lines.append(
             f"| {v['name']} | {v['PSNR']:.2f} | {v['SSIM']:.3f} | "
-            f"{fmt(per_view['mIoU'])} | {fmt(per_view['mAcc'])} |"
+            f"{_fmt(per_view['mIoU'])} | {_fmt(per_view['mAcc'])} |"
         )
     lines += _phrase_table(report["views"])
     if pictures is not None:
-        rel = Path(pictures).resolve()
-        lines += ["", "## Renders (RGB, depth)", ""]
-        sheet = rel / "views_sheet.png"
-        if sheet.exists():
-            lines += [f"![every view: render, depth, ground truth]({_relative(sheet, md.parent)})", ""]
-        for v in report["views"]:
-            for kind in ("rgb", "depth"):
-                p = rel / f"{v['name']}_{kind}.png"
-                if p.exists():
-                    lines.append(f"![{v['name']} {kind}]({_relative(p, md.parent)})")
-        sheets = [(v["name"], rel / f"{v['name']}_queries.png") for v in report["views"]]
-        sheets = [(name, p) for name, p in sheets if p.exists()]
-        if sheets:
-            lines += ["", "## Text queries (heat maps; masks, ground truth outlined in green)", ""]
-            lines += [f"![{name} queries]({_relative(p, md.parent)})" for name, p in sheets]
+        lines += _picture_lines(report, Path(pictures), md.parent)
     with atomic_path(md) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     return md
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    return "n/a" if v is None else (f"{v:.{digits}f}" if isinstance(v, float) else str(v))
+
+
+def _oracle_and_selection_lines(report: dict) -> list[str]:
+    lines: list[str] = []
+    oracle = report.get("oracle")
+    if oracle:
+        lines += [
+            "Oracle (the same queries on each view's own mask features, the query pipeline's ceiling): "
+            f"mIoU {_fmt(oracle['mIoU'])}, mAcc {_fmt(oracle['mAcc'])}; the field reaches "
+            f"{_fmt(oracle['ratio'], 2)} of its mIoU.",
+            "",
+        ]
+    selection = report.get("selection_3d")
+    if selection and selection["precision"] is not None:
+        lines += [
+            f"3D selection (`field.query(o).gaussians()` against each object's surface, within "
+            f"{selection['tolerance']:.3f}): precision {_fmt(selection['precision'])}, recall "
+            f"{_fmt(selection['recall'])}; precision among the selected Gaussians that lie on a surface "
+            f"{_fmt(selection['surface_precision'])} ({_fmt(selection['off_surface'])} of all Gaussians "
+            "lie on none).",
+            "",
+            "| object | precision | recall | surface precision | selected | the object's Gaussians |",
+            "|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {name} | {_fmt(o['precision'])} | {_fmt(o['recall'])} | {_fmt(o['surface_precision'])} "
+            f"| {o['selected']} | {o['gaussians']} |"
+            for name, o in selection["objects"].items()
+        ]
+        lines.append("")
+    return lines
+
+
+def _picture_lines(report: dict, pictures: Path, where: Path) -> list[str]:
+    """Markdown image links to the renders and query sheets in ``pictures``, relative to ``where``."""
+    lines: list[str] = []
+    rel = pictures.resolve()
+    lines += ["", "## Renders (RGB, depth)", ""]
+    sheet = rel / "views_sheet.png"
+    if sheet.exists():
+        lines += [f"![every view: render, depth, ground truth]({_relative(sheet, where)})", ""]
+    for v in report["views"]:
+        for kind in ("rgb", "depth"):
+            p = rel / f"{v['name']}_{kind}.png"
+            if p.exists():
+                lines.append(f"![{v['name']} {kind}]({_relative(p, where)})")
+    sheets = [(v["name"], rel / f"{v['name']}_queries.png") for v in report["views"]]
+    sheets = [(name, p) for name, p in sheets if p.exists()]
+    if sheets:
+        lines += ["", "## Text queries (heat maps; masks, ground truth outlined in green)", ""]
+        lines += [f"![{name} queries]({_relative(p, where)})" for name, p in sheets]
+    return lines
 
 
 def _phrase_table(views: list[dict[str, Any]]) -> list[str]:
