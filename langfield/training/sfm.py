@@ -137,8 +137,23 @@ def _run(
             np.uint8
         )
         cv2.imwrite(str(image_dir / name), cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
+    db_images = _extract(pycolmap, database_path, image_dir, names, cameras, stats)
+    if sum(n > 0 for n in stats["features_per_view"]) < 2:
+        stats["reason"] = "SIFT found features in fewer than 2 views"
+        return empty, empty
+    matched = _match(pycolmap, database_path, cameras, db_images, two_view_tracks, stats)
+    if matched is None:
+        return empty, empty
+    reconstruction, pipeline = matched
+    return _triangulate(pycolmap, reconstruction, database_path, image_dir, out_dir, pipeline, stats)
 
-    # 1. SIFT on the CPU, one thread: the keypoints and the ids the database hands out do not
+
+def _extract(
+    pycolmap, database_path: Path, image_dir: Path, names: list[str], cameras: list[Camera], stats: dict
+) -> list:
+    """Step 1: SIFT features of every image into the database, with the known intrinsics; returns the
+    database's images in the order of ``names``."""
+    # SIFT on the CPU, one thread: the keypoints and the ids the database hands out do not
     # depend on scheduling. PER_IMAGE gives each image its own camera (and trivial rig and frame),
     # so views with different intrinsics keep theirs.
     reader = pycolmap.ImageReaderOptions()
@@ -171,11 +186,15 @@ def _run(
         stats["features_per_view"] = [database.num_keypoints_for_image(im.image_id) for im in db_images]
     finally:
         database.close()
-    if sum(n > 0 for n in stats["features_per_view"]) < 2:
-        stats["reason"] = "SIFT found features in fewer than 2 views"
-        return empty, empty
+    return db_images
 
-    # 2. Exhaustive matching and geometric verification; a fixed RANSAC seed for repeatable inliers.
+
+def _match(
+    pycolmap, database_path: Path, cameras: list[Camera], db_images: list, two_view_tracks: bool, stats: dict
+):
+    """Step 2: matching and verification; returns (the posed reconstruction, the pipeline options), or
+    None (the reason in ``stats``) when no pair is verified."""
+    # Exhaustive matching and geometric verification; a fixed RANSAC seed for repeatable inliers.
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
     matching.num_threads = 1
@@ -200,12 +219,19 @@ def _run(
         stats["verified_pairs"], stats["matches"] = len(inliers), int(sum(inliers))
         if not inliers:
             stats["reason"] = "no image pair passed geometric verification"
-            return empty, empty
+            return None
         reconstruction = _posed_reconstruction(pycolmap, database, cameras, db_images)
     finally:
         database.close()
+    return reconstruction, pipeline
 
-    # 3. Triangulation with the poses fixed; it also extracts the points' colours from the PNGs.
+
+def _triangulate(
+    pycolmap, reconstruction, database_path: Path, image_dir: Path, out_dir: Path, pipeline, stats: dict
+):
+    """Step 3: the tracks triangulated with the poses fixed; returns (points, colors)."""
+    empty = np.zeros((0, 3), dtype=np.float32)
+    # Triangulation with the poses fixed; it also extracts the points' colours from the PNGs.
     result = pycolmap.triangulate_points(
         reconstruction, database_path, image_dir, out_dir, options=pipeline, refine_intrinsics=False
     )
