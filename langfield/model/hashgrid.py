@@ -178,9 +178,10 @@ class HashGrid(nn.Module):
             raise ValueError(
                 f"grid box needs a finite centre and a positive half extent, got {center}, {half}"
             )
-        # The numba kernels of :mod:`langfield.model.hashgrid_cpu` on the CPU; False selects the PyTorch
-        # reference (``_InterpolateRows``), which the tests compare them against.
-        self.fast = True
+        # Which interpolation runs, named as the rasterizer's backends: "cpu" (and "auto", on CPU
+        # tensors) the numba kernels of :mod:`langfield.model.hashgrid_cpu`; "torch" the PyTorch
+        # reference (``_InterpolateRows``) the tests compare them against.
+        self.backend = "auto"
         self.register_buffer("center", center)
         self.register_buffer("half_extent", half)
 
@@ -277,7 +278,7 @@ class HashGrid(nn.Module):
         f = self.cfg.features_per_level
         if groups < 1 or f % groups:
             raise ValueError(f"groups must divide features_per_level={f}, got {groups}")
-        if self.fast and self.table.device.type == "cpu":
+        if self.backend != "torch" and self.table.device.type == "cpu":
             notice_once()
             out = InterpolateRowsNumba.apply(
                 self.table.view(-1, f), rows, frac.to(self.table.dtype), self.cfg.table_size, groups

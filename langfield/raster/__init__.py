@@ -8,6 +8,7 @@ backward). ``"auto"`` picks ``"cpu"``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal, NamedTuple
 
 import torch
@@ -47,6 +48,37 @@ def resolve_backend(backend: Backend) -> str:
     return backend
 
 
+class Kernels(NamedTuple):
+    """One backend's three stages, each the same function of the same arguments in every backend (the
+    tests compare them pairwise: values and gradients).
+
+    Attributes:
+        project: :func:`~langfield.raster.projection.project_gaussians` or its numba twin.
+        bin: :func:`~langfield.raster.binning.bin_gaussians` or its numba twin.
+        composite: front-to-back compositing of the binned Gaussians.
+        composite_pair: compositing of two passes over the same footprints in one walk, or None (the
+            second pass is then a :func:`rasterize` of its own).
+    """
+
+    project: Callable
+    bin: Callable
+    composite: Callable
+    composite_pair: Callable | None
+
+
+def kernels(backend: Backend) -> Kernels:
+    """The kernels of ``backend``: the one table of what each backend runs. The ``cpu`` kernels are
+    imported, and the notice of their one-time compilation shown, when first asked for."""
+    if resolve_backend(backend) == "torch":
+        return Kernels(project_gaussians, bin_gaussians, rasterize_torch, None)
+    from langfield.kernels import notice_once
+    from langfield.raster.cpu_backend import rasterize_cpu, rasterize_pair_cpu
+    from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
+
+    notice_once()
+    return Kernels(project_gaussians_cpu, bin_gaussians_cpu, rasterize_cpu, rasterize_pair_cpu)
+
+
 def _background(features: Tensor, background: Tensor | None) -> Tensor:
     """[C] background of ``features``' dtype (zeros if None)."""
     n_ch = features.shape[1]
@@ -68,21 +100,11 @@ def composite(
     """Composites already projected Gaussians: returns image [H, W, C] and alpha [H, W]."""
     background = _background(features, background)
     opacities = opacities.reshape(-1)
-    name = resolve_backend(backend)
-    if name == "torch":
-        offsets, ids = bin_gaussians(
-            projected.means2d, projected.radii, projected.conics, opacities, projected.depths, width, height
-        )
-        fn = rasterize_torch
-    else:
-        from langfield.raster.cpu_backend import rasterize_cpu
-        from langfield.raster.cpu_geometry import bin_gaussians_cpu
-
-        offsets, ids = bin_gaussians_cpu(
-            projected.means2d, projected.radii, projected.conics, opacities, projected.depths, width, height
-        )
-        fn = rasterize_cpu
-    return fn(
+    run = kernels(backend)
+    offsets, ids = run.bin(
+        projected.means2d, projected.radii, projected.conics, opacities, projected.depths, width, height
+    )
+    return run.composite(
         projected.means2d,
         projected.conics,
         opacities,
@@ -135,14 +157,7 @@ def rasterize(
         >>> out.image.shape
         torch.Size([24, 32, 3])
     """
-    if resolve_backend(backend) == "torch":
-        project = project_gaussians
-    else:
-        from langfield.kernels import notice_once
-        from langfield.raster.cpu_geometry import project_gaussians_cpu as project
-
-        notice_once()
-    projected = project(
+    projected = kernels(backend).project(
         means, quats, scales, camera.world_to_camera(), camera.intrinsics(), camera.width, camera.height, near
     )
     if projected.means2d.requires_grad:
@@ -189,7 +204,8 @@ def rasterize_with_second_pass(
     """
     second_opacities = second_opacities.reshape(-1)
     second_values = second_values.reshape(-1, 1)
-    if resolve_backend(backend) == "torch":
+    run = kernels(backend)
+    if run.composite_pair is None:
         out = rasterize(
             means, quats, scales, opacities, features, camera,
             background=background, backend=backend, near=near, geometry_channels=geometry_channels,
@@ -199,14 +215,9 @@ def rasterize_with_second_pass(
             backend=backend, near=near,
         )  # fmt: skip
         return out, second.image
-    from langfield.kernels import notice_once
-    from langfield.raster.cpu_backend import rasterize_pair_cpu
-    from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
-
-    notice_once()
     view = (camera.world_to_camera(), camera.intrinsics(), camera.width, camera.height, near)
-    projected = project_gaussians_cpu(means, quats, scales, *view)
-    detached = project_gaussians_cpu(means, quats.detach(), scales.detach(), *view)
+    projected = run.project(means, quats, scales, *view)
+    detached = run.project(means, quats.detach(), scales.detach(), *view)
     if projected.means2d.requires_grad:
         projected.means2d.retain_grad()
     background = _background(features, background)
@@ -214,8 +225,8 @@ def rasterize_with_second_pass(
     # Either pass's Gaussians: a list binned by the larger opacity holds every one that reaches a tile.
     reach = torch.maximum(opacities.detach(), second_opacities.detach())
     p, w, h = projected, camera.width, camera.height
-    offsets, ids = bin_gaussians_cpu(p.means2d, p.radii, p.conics, reach, p.depths, w, h)
-    image, alpha, second, _ = rasterize_pair_cpu(
+    offsets, ids = run.bin(p.means2d, p.radii, p.conics, reach, p.depths, w, h)
+    image, alpha, second, _ = run.composite_pair(
         projected.means2d, projected.conics, opacities, features,
         detached.means2d, detached.conics, second_opacities, second_values,
         offsets, ids, camera.width, camera.height, background, geometry_channels,
@@ -225,8 +236,10 @@ def rasterize_with_second_pass(
 
 __all__ = [
     "BACKENDS",
+    "Kernels",
     "RasterOutput",
     "composite",
+    "kernels",
     "project_gaussians",
     "quat_to_rotmat",
     "rasterize",
