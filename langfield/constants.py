@@ -5,7 +5,24 @@ A leaf module: it imports nothing from langfield, so any module may use it.
 
 from __future__ import annotations
 
-__all__ = ["LATENT_NORM_EPS", "TEXT_TABLE_FILE"]
+__all__ = [
+    "DEPTHS_DIR",
+    "FEATURES_DIR",
+    "IMAGES_DIR",
+    "LATENT_NORM_EPS",
+    "MASKS_DIR",
+    "SEGMENTATIONS_DIR",
+    "TEXT_TABLE_FILE",
+    "TRANSFORMS_FILE",
+]
+
+# A scene folder's parts (docs/format.md).
+TRANSFORMS_FILE = "transforms.json"
+IMAGES_DIR = "images"
+DEPTHS_DIR = "depths"
+FEATURES_DIR = "language_features"
+SEGMENTATIONS_DIR = "segmentations"
+MASKS_DIR = "masks"
 
 # The copy of the scene's phrase table a saved field keeps beside field.json (text-encoder "table"), and
 # the name of that table in a scene folder.

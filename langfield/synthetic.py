@@ -40,9 +40,17 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from encoders.cache import feature_cache_paths
 from encoders.protocols import CANONICAL_PHRASES, LEVELS
 from langfield.camera import Camera
-from langfield.constants import TEXT_TABLE_FILE
+from langfield.constants import (
+    DEPTHS_DIR,
+    FEATURES_DIR,
+    IMAGES_DIR,
+    SEGMENTATIONS_DIR,
+    TEXT_TABLE_FILE,
+    TRANSFORMS_FILE,
+)
 
 __all__ = [
     "CANONICAL_PHRASES",
@@ -135,7 +143,7 @@ def make_room(
     if not (scale > 0 and np.isfinite(scale)):
         raise ValueError(f"make_room: scale must be positive and finite, got {scale}")
     out = Path(out_dir)
-    for sub in ("images", "depths", "language_features", "segmentations", "gt/depth", "gt/ids"):
+    for sub in (IMAGES_DIR, DEPTHS_DIR, FEATURES_DIR, SEGMENTATIONS_DIR, "gt/depth", "gt/ids"):
         (out / sub).mkdir(parents=True, exist_ok=True)
 
     prims = _room_primitives(np.random.default_rng([seed, _STREAM_LAYOUT]), scale, layout)
@@ -154,15 +162,16 @@ def make_room(
         prior = _depth_prior(depth, np.random.default_rng([seed, _STREAM_PRIOR, view]), scale)
         feature_rng = np.random.default_rng([seed, _STREAM_FEATURES, view])
         seg, feats = _language_features(ids, prims, concepts, feature_rng)
-        cv2.imwrite(str(out / "images" / f"{cam.name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGBA2BGRA))
-        np.save(out / "depths" / f"{cam.name}.npy", prior)
-        np.save(out / "language_features" / f"{cam.name}_s.npy", seg)
-        np.save(out / "language_features" / f"{cam.name}_f.npy", feats)
+        cv2.imwrite(str(out / IMAGES_DIR / f"{cam.name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGBA2BGRA))
+        np.save(out / DEPTHS_DIR / f"{cam.name}.npy", prior)
+        features_path, segments_path = feature_cache_paths(out / FEATURES_DIR, cam.name)
+        np.save(segments_path, seg)
+        np.save(features_path, feats)
         np.save(out / "gt" / "depth" / f"{cam.name}.npy", depth)
         np.save(out / "gt" / "ids" / f"{cam.name}.npy", ids)
-        _write_segmentations(out / "segmentations" / cam.name, ids, prims)
+        _write_segmentations(out / SEGMENTATIONS_DIR / cam.name, ids, prims)
 
-    _write_transforms(out / "transforms.json", cameras, n_train, prims, seed, scale, layout)
+    _write_transforms(out / TRANSFORMS_FILE, cameras, n_train, prims, seed, scale, layout)
     _write_text_embeddings(out / TEXT_TABLE_FILE, concepts, seed)
     _write_ground_truth_mesh(out / "gt", prims)
     return out

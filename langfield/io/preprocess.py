@@ -43,12 +43,12 @@ from encoders.cache import (
 )
 from encoders.protocols import DepthEstimator, ImageTextEncoder, Segmenter
 from langfield.atomic import atomic_path
+from langfield.constants import DEPTHS_DIR, FEATURES_DIR, TRANSFORMS_FILE
 from langfield.io.scene import Scene, load_scene
 
 __all__ = ["Models", "PreprocessError", "PreprocessReport", "load_models", "preprocess_scene"]
 
 SegmenterName = Literal["sam", "graph"]
-_FEATURES, _DEPTHS = "language_features", "depths"
 _DEFAULT_DEPTH_KIND = "disparity"  # what Scene assumes for depths/ without a depth_kind
 
 
@@ -266,7 +266,7 @@ def preprocess_scene(
         for name in names:
             if timed_segmenter is not None and (overwrite or not _features_done(scene, name, encoder.dim)):
                 cache = build_feature_cache(scene.image(name), timed_segmenter, timed_encoder)
-                write_feature_cache(root / _FEATURES, name, cache)
+                write_feature_cache(root / FEATURES_DIR, name, cache)
                 report.features_written.append(name)
                 report.num_masks += cache.num_masks
             if name in depth_todo:
@@ -328,7 +328,7 @@ def _hw(scene: Scene, name: str) -> tuple[int, int]:
 
 def _features_done(scene: Scene, name: str, dim: int) -> bool:
     """Both cache files exist and read back valid at the image's size and the encoder's dimension."""
-    f_path, s_path = feature_cache_paths(scene.root / _FEATURES, name)
+    f_path, s_path = feature_cache_paths(scene.root / FEATURES_DIR, name)
     if not (f_path.is_file() and s_path.is_file()):
         return False
     try:
@@ -338,7 +338,7 @@ def _features_done(scene: Scene, name: str, dim: int) -> bool:
 
 
 def _depth_path(scene: Scene, name: str) -> Path:
-    return scene.root / _DEPTHS / f"{name}.npy"
+    return scene.root / DEPTHS_DIR / f"{name}.npy"
 
 
 def _depth_done(scene: Scene, name: str) -> bool:
@@ -379,21 +379,21 @@ def _record_depth_kind(scene: Scene, kind: str, todo: set[str]) -> tuple[str, Pa
     """
     root = scene.root
     source = next(
-        (root / n for n in ("transforms.json", "transforms_train.json") if (root / n).is_file()), None
+        (root / n for n in (TRANSFORMS_FILE, "transforms_train.json") if (root / n).is_file()), None
     )
     meta = _read_json(source) if source is not None else {}
     if "depth_kind" in meta:
         if meta["depth_kind"] != kind:
             raise PreprocessError(
                 f"{source}: depth_kind is {meta['depth_kind']!r} but the depth model outputs {kind!r}; "
-                f"the maps in {root / _DEPTHS} would disagree with it (move them away and remove the key, "
+                f"the maps in {root / DEPTHS_DIR} would disagree with it (move them away and remove the key, "
                 f"or use a {meta['depth_kind']} model)"
             )
         return kind, None
     kept = [n for n in scene.names("all") if n not in todo and _depth_path(scene, n).is_file()]
     if kept and kind != _DEFAULT_DEPTH_KIND:
         raise PreprocessError(
-            f"{root / _DEPTHS}: holds maps without a depth_kind (read as {_DEFAULT_DEPTH_KIND}), e.g. "
+            f"{root / DEPTHS_DIR}: holds maps without a depth_kind (read as {_DEFAULT_DEPTH_KIND}), e.g. "
             f"{kept[0]}.npy, but the depth model outputs {kind!r}; pass --overwrite to replace them all"
         )
     if source is None:

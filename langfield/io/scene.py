@@ -29,9 +29,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from encoders.cache import feature_cache_paths
 from encoders.protocols import DEPTH_KINDS
 from langfield.camera import Camera
-from langfield.constants import TEXT_TABLE_FILE
+from langfield.constants import (
+    DEPTHS_DIR,
+    FEATURES_DIR,
+    IMAGES_DIR,
+    MASKS_DIR,
+    SEGMENTATIONS_DIR,
+    TEXT_TABLE_FILE,
+    TRANSFORMS_FILE,
+)
 from langfield.io import colmap as colmap
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
@@ -191,7 +200,7 @@ class Scene:
 
     def depth_path(self, name: str | int) -> Path | None:
         """`depths/<name>.npy` if the view has a depth prior, else None."""
-        path = self.root / "depths" / f"{self.views[self._position(name)].name}.npy"
+        path = self.root / DEPTHS_DIR / f"{self.views[self._position(name)].name}.npy"
         return path if path.is_file() else None
 
     def object_mask(self, name: str | int) -> np.ndarray | None:
@@ -200,7 +209,7 @@ class Scene:
         The DTU protocol scores test views with the object alone (masked PSNR / SSIM, docs/format.md).
         """
         i = self._position(name)
-        path = self.root / "masks" / f"{self.views[i].name}.png"
+        path = self.root / MASKS_DIR / f"{self.views[i].name}.png"
         if not path.is_file():
             return None
         mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -215,7 +224,7 @@ class Scene:
     def segmentations(self, name: str | int) -> dict[str, np.ndarray]:
         """{phrase: [H, W] bool} from `segmentations/<name>/<phrase>.png` (non-zero = inside)."""
         i = self._position(name)
-        folder = self.root / "segmentations" / self.views[i].name
+        folder = self.root / SEGMENTATIONS_DIR / self.views[i].name
         if not folder.is_dir():
             return {}
         masks = {}
@@ -236,8 +245,7 @@ class Scene:
         Raises:
             SceneError: one of the pair exists without the other (an interrupted preprocessing).
         """
-        stem = self.root / "language_features" / self.views[self._position(name)].name
-        paths = (stem.with_name(stem.name + "_f.npy"), stem.with_name(stem.name + "_s.npy"))
+        paths = feature_cache_paths(self.root / FEATURES_DIR, self.views[self._position(name)].name)
         present = [p.is_file() for p in paths]
         if all(present):
             return paths
@@ -457,7 +465,7 @@ def _protocol_splits(layout: _Layout, n_views: int, test: list[int] | None) -> l
 def _read_layout(root: Path) -> _Layout:
     if not root.is_dir():
         raise SceneError(f"{root}: scene folder not found")
-    if (root / "transforms.json").is_file():
+    if (root / TRANSFORMS_FILE).is_file():
         return _read_transforms(root)
     if (root / "transforms_train.json").is_file():
         return _read_blender(root)
@@ -476,7 +484,7 @@ def _read_layout(root: Path) -> _Layout:
 
 
 def _read_transforms(root: Path) -> _Layout:
-    path = root / "transforms.json"
+    path = root / TRANSFORMS_FILE
     meta = _load_json(path)
     frames = [_parse_frame(path, meta, i, frame) for i, frame in enumerate(meta["frames"])]
     return _json_layout(root, path, meta, frames)
@@ -622,7 +630,7 @@ def _depth_kind(root: Path, path: Path, meta: dict) -> str | None:
     kind = meta.get("depth_kind")
     if kind is None:
         # Monocular depth models (DPT, MiDaS, Depth Anything) output disparity, so that is the default.
-        return "disparity" if (root / "depths").is_dir() else None
+        return "disparity" if (root / DEPTHS_DIR).is_dir() else None
     if kind not in DEPTH_KINDS:
         raise SceneError(f"{path}: depth_kind must be 'depth' or 'disparity', got {kind!r}")
     return kind
@@ -686,7 +694,7 @@ def _read_llff(root: Path) -> _Layout:
 def _llff_folder(root: Path, path: Path) -> Path:
     """`images_N/` with the largest N (the sparse-view protocols' resolution), else `images/`."""
     scaled = [d for d in root.glob("images_*") if d.is_dir() and re.fullmatch(r"images_\d+", d.name)]
-    for folder in [*sorted(scaled, key=lambda d: -int(d.name[7:])), root / "images"]:
+    for folder in [*sorted(scaled, key=lambda d: -int(d.name[7:])), root / IMAGES_DIR]:
         if folder.is_dir():
             return folder
     raise SceneError(f"{path}: no images_N/ or images/ folder beside it")
@@ -736,7 +744,7 @@ def _colmap_frame(
     if image.camera_id not in cameras:
         raise SceneError(f"{where} uses camera {image.camera_id}, which {cameras_path} does not define")
     fx, fy, cx, cy, distortion = _colmap_intrinsics(cameras_path, cameras[image.camera_id])
-    image_path = root / "images" / image.name
+    image_path = root / IMAGES_DIR / image.name
     if not image_path.is_file():
         raise SceneError(f"{image_path}: image file not found (listed in {images_path})")
     try:
