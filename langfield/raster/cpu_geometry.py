@@ -32,10 +32,7 @@ from torch import Tensor
 
 from langfield.kernels import configure_numba_threads
 from langfield.raster.binning import ALPHA_MIN, Q_MARGIN, TILE_SIZE
-from langfield.raster.projection import EPS_2D, NEAR_PLANE, Projected, tangent_limits
-
-_QUAT_NORM2_MIN = 1e-24  # as quat_to_rotmat's clamp
-
+from langfield.raster.projection import EPS_2D, NEAR_PLANE, QUAT_NORM2_MIN, Projected, tangent_limits
 
 configure_numba_threads()
 
@@ -77,7 +74,7 @@ def _project_forward(
         out_conics[i, 2] = 1.0
         # Sigma_cam (also needed by the backward), computed for every Gaussian.
         qw, qx, qy, qz = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
-        norm = math.sqrt(max(qw * qw + qx * qx + qy * qy + qz * qz, _QUAT_NORM2_MIN))
+        norm = math.sqrt(max(qw * qw + qx * qx + qy * qy + qz * qz, QUAT_NORM2_MIN))
         out_norm[i] = norm
         r = _rotmat(qw / norm, qx / norm, qy / norm, qz / norm)
         s0, s1, s2 = float(scales[i, 0]), float(scales[i, 1]), float(scales[i, 2])
@@ -239,7 +236,7 @@ def _project_backward(
         )  # fmt: skip
         # q / max(|q|, 1e-12): the clamp passes no gradient to the norm
         q2 = quats[i, 0] ** 2 + quats[i, 1] ** 2 + quats[i, 2] ** 2 + quats[i, 3] ** 2
-        dot = gw * qw + gx * qx + gy * qy + gz * qz if q2 > _QUAT_NORM2_MIN else 0.0
+        dot = gw * qw + gx * qx + gy * qy + gz * qz if q2 > QUAT_NORM2_MIN else 0.0
         out_g_quats[i, 0] = (gw - qw * dot) / norm
         out_g_quats[i, 1] = (gx - qx * dot) / norm
         out_g_quats[i, 2] = (gy - qy * dot) / norm

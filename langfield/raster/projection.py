@@ -33,12 +33,19 @@ class Projected(NamedTuple):
     radii: Tensor
 
 
+# The rasterizer's floor under |q|^2 (|q| >= 1e-12): only a guard against 0 / 0, so that a zero
+# quaternion renders as the identity without NaN. It is not langfield.model.gaussians.QUAT_EPS (1e-8),
+# below which the parameters' own normalisation snaps a quaternion to the identity: the renderer must
+# draw whatever it is given, and the two paths round differently between 1e-12 and 1e-8.
+QUAT_NORM2_MIN = 1e-24
+
+
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """Rotation matrices [N, 3, 3] from quaternions [N, 4] (w, x, y, z), normalised with an epsilon.
 
     A zero quaternion gives the identity (every term of the matrix vanishes but the diagonal's 1).
     """
-    norm = torch.sqrt(torch.clamp((quats * quats).sum(-1, keepdim=True), min=1e-24))
+    norm = torch.sqrt(torch.clamp((quats * quats).sum(-1, keepdim=True), min=QUAT_NORM2_MIN))
     w, x, y, z = (quats / norm).unbind(-1)
     return torch.stack(
         [
