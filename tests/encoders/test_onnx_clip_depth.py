@@ -10,14 +10,10 @@ the project's exporters and compare onnxruntime with PyTorch on the same inputs.
 
 from __future__ import annotations
 
-import argparse
-import contextlib
 import gzip
-import io
 import json
 import shutil
 import sys
-from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -25,6 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from conftest import run_models_cli, tiny_sam
 
 from encoders.cache import build_feature_cache, read_feature_cache
 from encoders.manifest import ManifestError, read_manifest
@@ -32,7 +29,6 @@ from encoders.onnx_clip import ClipTokenizer, OnnxClipEncoder
 from encoders.onnx_depth import OnnxDepthEstimator
 from encoders.protocols import DepthEstimator, ImageTextEncoder
 from encoders.stubs import StubSegmenter
-from langfield.cli import models as cli_models
 
 TOL = 1e-4  # max |ONNX - PyTorch|
 CLIP_NAME = "langfield-tiny-clip"
@@ -58,21 +54,6 @@ PHRASES = [
     "'ſ long s",
     "word " * 100,
 ]
-
-
-def run_cli(argv: list[str]) -> tuple[int, str, str]:
-    """(exit status, stdout, stderr) of the export / preprocess parsers, as langfield.cli.main runs them."""
-    parser = argparse.ArgumentParser(prog="langfield")
-    cli_models.add_parsers(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = args.func(args)
-        except (FileNotFoundError, ValueError) as exc:  # what cli.main turns into one line and status 2
-            print(f"langfield {args.command}: error: {exc}", file=err)
-            code = 2
-    return code, out.getvalue(), err.getvalue()
 
 
 # ---------------------------------------------------------------- tokenizer on a hand-written vocabulary
@@ -163,7 +144,7 @@ def clip(models_dir, tmp_path_factory) -> tuple[Any, Path, str]:
     checkpoint = configs / "tiny_clip.pt"
     torch.save(model.state_dict(), checkpoint)
     out = models_dir / "clip"
-    code, stdout, stderr = run_cli(
+    code, stdout, stderr = run_models_cli(
         ["export", "clip", "--model", CLIP_NAME, "--checkpoint", str(checkpoint), "--out", str(out)]
     )
     assert code == 0, stderr
@@ -218,47 +199,9 @@ def depth(models_dir, tmp_path_factory) -> tuple[Any, Path, str]:
         image_std=[0.229, 0.224, 0.225],
     ).save_pretrained(folder)
     out = models_dir / "depth"
-    code, stdout, stderr = run_cli(["export", "depth", "--checkpoint", str(folder), "--out", str(out)])
+    code, stdout, stderr = run_models_cli(["export", "depth", "--checkpoint", str(folder), "--out", str(out)])
     assert code == 0, stderr
     return model, out, stdout
-
-
-def tiny_sam() -> Any:
-    """A SAM of the real architecture, tiny (ViT 32-d, 2 blocks, 64 px input)."""
-    modeling = _import_or_skip("segment_anything.modeling")
-    torch.manual_seed(2)
-    dim, size, patch = 32, 64, 16
-    return modeling.Sam(
-        image_encoder=modeling.ImageEncoderViT(
-            depth=2,
-            embed_dim=dim,
-            img_size=size,
-            mlp_ratio=2,
-            norm_layer=partial(torch.nn.LayerNorm, eps=1e-6),
-            num_heads=2,
-            patch_size=patch,
-            qkv_bias=True,
-            use_rel_pos=True,
-            global_attn_indexes=(1,),
-            window_size=2,
-            out_chans=dim,
-        ),
-        prompt_encoder=modeling.PromptEncoder(
-            embed_dim=dim,
-            image_embedding_size=(size // patch, size // patch),
-            input_image_size=(size, size),
-            mask_in_chans=4,
-        ),
-        mask_decoder=modeling.MaskDecoder(
-            num_multimask_outputs=3,
-            transformer=modeling.TwoWayTransformer(depth=2, embedding_dim=dim, mlp_dim=64, num_heads=2),
-            transformer_dim=dim,
-            iou_head_depth=3,
-            iou_head_hidden_dim=32,
-        ),
-        pixel_mean=[123.675, 116.28, 103.53],
-        pixel_std=[58.395, 57.12, 57.375],
-    ).eval()
 
 
 # ---------------------------------------------------------------- CLIP
@@ -469,7 +412,7 @@ def test_export_preprocess_train_query(clip, depth, models_dir, tmp_path) -> Non
     from langfield.io.preprocess import load_models, preprocess_scene
     from langfield.synthetic import make_room
 
-    export_sam(models_dir / "sam", model=tiny_sam())
+    export_sam(models_dir / "sam", model=tiny_sam(64, 2, 2))
     room = make_room(tmp_path / "room", seed=0, width=48, height=36, n_test=2)
     shutil.rmtree(room / "language_features")
     shutil.rmtree(room / "depths")
@@ -478,7 +421,7 @@ def test_export_preprocess_train_query(clip, depth, models_dir, tmp_path) -> Non
     (room / "transforms.json").write_text(json.dumps(meta))
 
     # The command, with SAM's default thresholds: every file docs/format.md lists, at the image size.
-    code, stdout, stderr = run_cli(["preprocess", str(room), "--models", str(models_dir)])
+    code, stdout, stderr = run_models_cli(["preprocess", str(room), "--models", str(models_dir)])
     assert code == 0, stderr
     assert "s/image" in stdout.splitlines()[-1] and "depth_kind recorded" in stdout.splitlines()[-1]
     scene = load_scene(room)
@@ -487,7 +430,7 @@ def test_export_preprocess_train_query(clip, depth, models_dir, tmp_path) -> Non
         cache = read_feature_cache(*scene.feature_paths(name), dim=512)
         assert cache.segments.shape == (3, 36, 48)
         assert np.load(room / "depths" / f"{name}.npy").shape == (36, 48)
-    code, stdout, _ = run_cli(["preprocess", str(room), "--models", str(models_dir)])
+    code, stdout, _ = run_models_cli(["preprocess", str(room), "--models", str(models_dir)])
     assert code == 0 and "every view was already done" in stdout
 
     # A random SAM's masks rarely pass SAM's quality thresholds; lower them so every level has masks.

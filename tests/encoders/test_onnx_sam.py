@@ -7,7 +7,6 @@ architecture; they are skipped where segment-anything is not installed.
 
 from __future__ import annotations
 
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import tiny_sam
 
 from encoders.manifest import ManifestError, read_manifest
 from encoders.onnx_sam import (
@@ -254,50 +254,10 @@ def test_missing_model_folder_is_a_manifest_error(tmp_path: Path) -> None:
 # ---------------------------------------------------------------- export (needs segment-anything)
 
 
-def tiny_sam(seed: int = 0) -> Any:
-    """A randomly initialised SAM of the real architecture, tiny (ViT 32-d, 2 blocks, 128 px input)."""
-    modeling = pytest.importorskip("segment_anything.modeling")
-    torch.manual_seed(seed)
-    dim, patch = 32, 16
-    emb = TINY_SIZE // patch
-    sam = modeling.Sam(
-        image_encoder=modeling.ImageEncoderViT(
-            depth=2,
-            embed_dim=dim,
-            img_size=TINY_SIZE,
-            mlp_ratio=2,
-            norm_layer=partial(torch.nn.LayerNorm, eps=1e-6),
-            num_heads=2,
-            patch_size=patch,
-            qkv_bias=True,
-            use_rel_pos=True,
-            global_attn_indexes=(1,),
-            window_size=4,
-            out_chans=dim,
-        ),
-        prompt_encoder=modeling.PromptEncoder(
-            embed_dim=dim,
-            image_embedding_size=(emb, emb),
-            input_image_size=(TINY_SIZE, TINY_SIZE),
-            mask_in_chans=4,
-        ),
-        mask_decoder=modeling.MaskDecoder(
-            num_multimask_outputs=3,
-            transformer=modeling.TwoWayTransformer(depth=2, embedding_dim=dim, mlp_dim=64, num_heads=2),
-            transformer_dim=dim,
-            iou_head_depth=3,
-            iou_head_hidden_dim=32,
-        ),
-        pixel_mean=[123.675, 116.28, 103.53],
-        pixel_std=[58.395, 57.12, 57.375],
-    )
-    return sam.eval()
-
-
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Path]:
     """(tiny SAM, its exported folder), exported once per module."""
-    sam = tiny_sam()
+    sam = tiny_sam(TINY_SIZE, 4, 0)
     from encoders.export.sam import export_sam
 
     folder = export_sam(tmp_path_factory.mktemp("sam"), model=sam)

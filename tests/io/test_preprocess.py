@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_models_cli
 
 from encoders.cache import read_feature_cache
 from encoders.manifest import ManifestError
@@ -43,21 +44,6 @@ def room(bare_room, tmp_path) -> Path:
 
 def stubs(kind: str = "disparity") -> tuple[StubSegmenter, StubImageTextEncoder, StubDepthEstimator]:
     return StubSegmenter(), StubImageTextEncoder(image_size=16), StubDepthEstimator(kind)
-
-
-def run_cli(argv: list[str]) -> tuple[int, str, str]:
-    """(exit status, stdout, stderr) of the preprocess / export parsers, as langfield.cli.main runs them."""
-    parser = argparse.ArgumentParser(prog="langfield")
-    cli_models.add_parsers(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = args.func(args)
-        except (FileNotFoundError, ValueError) as exc:  # what cli.main turns into one line and status 2
-            print(f"langfield {args.command}: error: {exc}", file=err)
-            code = 2
-    return code, out.getvalue(), err.getvalue()
 
 
 # ---------------------------------------------------------------- outputs
@@ -250,7 +236,7 @@ def test_manifest_of_another_kind_names_the_file(tmp_path) -> None:
 
 
 def test_cli_bad_model_folder_is_one_line_naming_the_file(room, tmp_path) -> None:
-    code, out, err = run_cli(["preprocess", str(room), "--depth", str(tmp_path)])
+    code, out, err = run_models_cli(["preprocess", str(room), "--depth", str(tmp_path)])
     assert code == 2
     assert err.strip() == (
         f"langfield preprocess: error: {tmp_path / 'manifest.json'}: no model manifest "
