@@ -56,19 +56,27 @@ def backend_step_ms(
     results: dict[str, dict[str, float]] = {}
     images: dict[str, torch.Tensor] = {}
     for backend in BACKENDS:
-        times = []
-        for i in range(repeats.get(backend, 3) + 1):  # the first run compiles / warms caches
-            leaves = [t.clone().requires_grad_(True) for t in base]
-            t0 = time.perf_counter()
-            out = rasterize(*leaves, camera, backend=backend)
-            (out.image * weights).sum().backward()
-            if i > 0:
-                times.append(time.perf_counter() - t0)
-        images[backend] = out.image.detach()
-        results[backend] = {"step_ms": 1000 * statistics.median(times)}
+        seconds, images[backend] = _median_step(base, weights, camera, backend, repeats.get(backend, 3))
+        results[backend] = {"step_ms": 1000 * seconds}
     for backend in BACKENDS:
         results[backend]["image_max_abs_err"] = float((images[backend] - images["torch"]).abs().max())
     return results
+
+
+def _median_step(
+    base: list[torch.Tensor], weights: torch.Tensor, camera: Camera, backend: str, repeats: int
+) -> tuple[float, torch.Tensor]:
+    """Median seconds of ``repeats`` forward + backward renders of the Gaussians ``base`` (a first,
+    untimed one compiles and warms the caches), and the rendered image."""
+    times = []
+    for i in range(repeats + 1):
+        leaves = [t.clone().requires_grad_(True) for t in base]
+        t0 = time.perf_counter()
+        out = rasterize(*leaves, camera, backend=backend)
+        (out.image * weights).sum().backward()
+        if i > 0:
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times), out.image.detach()
 
 
 # Arithmetic of one Gaussian-pixel pair with C channels, counted as the kernels do it: the offset
@@ -153,15 +161,7 @@ def raster_throughput(
     feats = torch.rand(means.shape[0], channels, generator=g)
     weights = torch.randn(camera.height, camera.width, channels, generator=g)
     base = [t.detach() for t in (means, quats, scales, opacities.reshape(-1), feats)]
-    times = []
-    for i in range(repeats + 1):  # the first call compiles / warms caches
-        leaves = [t.clone().requires_grad_(True) for t in base]
-        t0 = time.perf_counter()
-        out = rasterize(*leaves, camera, backend=backend)
-        (out.image * weights).sum().backward()
-        if i > 0:
-            times.append(time.perf_counter() - t0)
-    seconds = statistics.median(times)
+    seconds, _ = _median_step(base, weights, camera, backend, repeats)
     peak = cpu_peak_gflops()
     rate = pairs / seconds if seconds > 0 else None
     achieved = rate * pair_flops(channels) / 1e9 if rate else None
