@@ -2,7 +2,8 @@
 
 Follows the layout documented at https://colmap.github.io/format.html (binary files are little
 endian). Only what a scene needs is read: intrinsics and poses. The 2D keypoints in `images.*` are
-skipped and `points3D.*` is not read.
+skipped and `points3D.*` is not read. :func:`read_colmap` turns a model beside `images/` into a scene
+layout.
 
 Example:
     >>> found = find_model(Path("scene"))  # doctest: +SKIP
@@ -16,6 +17,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from langfield.camera import Camera
+from langfield.constants import IMAGES_DIR
+from langfield.io.layout import GL_TO_CV, Distortion, Frame, Layout, SceneError, depth_kind, unique_names
 
 # model id -> (name, number of parameters), as COLMAP numbers them.
 CAMERA_MODELS: dict[int, tuple[str, int]] = {
@@ -268,3 +273,77 @@ def _numbers(fields: list[str], kind: type, where: str) -> list:
         return [kind(f) for f in fields]
     except ValueError as e:
         raise ColmapError(f"{where}: {e}") from e
+
+
+_COLMAP_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+def read_colmap(root: Path, cameras_path: Path, images_path: Path) -> Layout:
+    try:
+        cameras = read_cameras(cameras_path)
+        images = read_images(images_path)
+    except ColmapError as e:
+        raise SceneError(str(e)) from e
+    if not images:
+        raise SceneError(f"{images_path}: COLMAP model has no images")
+    frames = [
+        _colmap_frame(root, cameras_path, images_path, cameras, image)
+        for image in sorted(images.values(), key=lambda im: im.name)
+    ]
+    return Layout(
+        root, images_path, unique_names(root, images_path, frames), depth_kind(root, images_path, {})
+    )
+
+
+def _colmap_frame(
+    root: Path,
+    cameras_path: Path,
+    images_path: Path,
+    cameras: dict[int, ColmapCamera],
+    image: ColmapImage,
+) -> Frame:
+    where = f"{images_path}: image {image.name!r}"
+    if image.camera_id not in cameras:
+        raise SceneError(f"{where} uses camera {image.camera_id}, which {cameras_path} does not define")
+    fx, fy, cx, cy, distortion = _colmap_intrinsics(cameras_path, cameras[image.camera_id])
+    image_path = root / IMAGES_DIR / image.name
+    if not image_path.is_file():
+        raise SceneError(f"{image_path}: image file not found (listed in {images_path})")
+    try:
+        # COLMAP stores world-to-camera in the OpenCV convention; Camera wants camera-to-world, OpenGL.
+        c2w = np.linalg.inv(image.world_to_camera()) @ GL_TO_CV
+        camera = Camera(
+            image_path.stem,
+            cameras[image.camera_id].width,
+            cameras[image.camera_id].height,
+            fx,
+            fy,
+            cx,
+            cy,
+            c2w,
+        )
+    except (ValueError, np.linalg.LinAlgError) as e:
+        raise SceneError(f"{where}: {e}") from e
+    return Frame(image_path.stem, camera, image_path, distortion)
+
+
+def _colmap_intrinsics(path: Path, cam: ColmapCamera) -> tuple[float, float, float, float, Distortion | None]:
+    """(fx, fy, cx, cy, distortion) of a COLMAP camera; radial models map onto OpenCV k1 k2 p1 p2."""
+    p = cam.params
+    match cam.model:
+        case "SIMPLE_PINHOLE":
+            fx, fy, cx, cy, dist = p[0], p[0], p[1], p[2], (0.0, 0.0, 0.0, 0.0)
+        case "PINHOLE":
+            fx, fy, cx, cy, dist = *p, (0.0, 0.0, 0.0, 0.0)
+        case "SIMPLE_RADIAL":
+            fx, fy, cx, cy, dist = p[0], p[0], p[1], p[2], (p[3], 0.0, 0.0, 0.0)
+        case "RADIAL":
+            fx, fy, cx, cy, dist = p[0], p[0], p[1], p[2], (p[3], p[4], 0.0, 0.0)
+        case "OPENCV":
+            fx, fy, cx, cy, dist = *p[:4], tuple(p[4:])
+        case _:
+            raise SceneError(
+                f"{path}: camera {cam.id} uses camera model {cam.model}, which is not supported "
+                f"(supported: {', '.join(_COLMAP_MODELS)})"
+            )
+    return fx, fy, cx, cy, dist if any(dist) else None
