@@ -21,8 +21,9 @@ __all__ = ["KERNEL_MODULES", "configure_numba_threads", "notice_once", "uncompil
 
 # The modules whose numba kernels are cached on disk.
 KERNEL_MODULES = (
-    "langfield.raster.cpu_geometry",
-    "langfield.raster.cpu_backend",
+    "langfield.raster.projection_cpu",
+    "langfield.raster.binning_cpu",
+    "langfield.raster.composite_cpu",
     "langfield.model.hashgrid_cpu",
 )
 

@@ -141,7 +141,8 @@ def raster_throughput(
     early, so the kernels evaluate at most that many. ``fraction_of_peak`` is the pairs' arithmetic
     (:func:`pair_flops`) per second over the FMA peak: how far the kernels are from the machine.
     """
-    from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
+    from langfield.raster.binning_cpu import bin_gaussians_cpu
+    from langfield.raster.projection_cpu import project_gaussians_cpu
 
     with torch.no_grad():
         projected = project_gaussians_cpu(

@@ -16,8 +16,8 @@ from torch import Tensor
 
 from langfield.camera import Camera
 from langfield.raster.binning import bin_gaussians
+from langfield.raster.composite import rasterize_torch
 from langfield.raster.projection import NEAR_PLANE, Projected, project_gaussians, quat_to_rotmat
-from langfield.raster.torch_backend import rasterize_torch
 
 Backend = Literal["auto", "torch", "cpu"]
 BACKENDS: tuple[str, ...] = ("torch", "cpu")
@@ -72,8 +72,9 @@ def kernels(backend: Backend) -> Kernels:
     if resolve_backend(backend) == "torch":
         return Kernels(project_gaussians, bin_gaussians, rasterize_torch, None)
     from langfield.kernels import notice_once
-    from langfield.raster.cpu_backend import rasterize_cpu, rasterize_pair_cpu
-    from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
+    from langfield.raster.binning_cpu import bin_gaussians_cpu
+    from langfield.raster.composite_cpu import rasterize_cpu, rasterize_pair_cpu
+    from langfield.raster.projection_cpu import project_gaussians_cpu
 
     notice_once()
     return Kernels(project_gaussians_cpu, bin_gaussians_cpu, rasterize_cpu, rasterize_pair_cpu)

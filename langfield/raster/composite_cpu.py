@@ -1,6 +1,6 @@
 """The fast CPU rasterizer: numba kernels with a hand-written backward.
 
-Same arithmetic as :mod:`langfield.raster.torch_backend` (the oracle), arranged for a 2-core CPU:
+Same arithmetic as :mod:`langfield.raster.composite` (the oracle), arranged for a 2-core CPU:
 
 - tiles run in parallel (``prange`` over workers, each given tiles of about equal total work); inside
   a tile, one 16-pixel row is processed at a time, so the innermost loops run over 16 contiguous
@@ -16,7 +16,8 @@ Same arithmetic as :mod:`langfield.raster.torch_backend` (the oracle), arranged 
 - gradients are written per (tile, Gaussian) intersection and then summed per Gaussian, one column
   per thread in a fixed order: no two threads write the same memory, so results are deterministic.
 
-Projection and binning run in numba too (:mod:`langfield.raster.cpu_geometry`).
+Projection and binning run in numba too (:mod:`langfield.raster.projection_cpu`,
+:mod:`langfield.raster.binning_cpu`).
 
 Choice of numba over a C++ extension: it needs no compiler at install time, caches its machine code
 (``cache=True``), and keeps the kernels in Python beside the reference they are tested against.
@@ -709,7 +710,7 @@ def rasterize_cpu(
     background: Tensor,
     geometry_channels: int | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Same contract as :func:`langfield.raster.torch_backend.rasterize_torch`, on numba kernels."""
+    """Same contract as :func:`langfield.raster.composite.rasterize_torch`, on numba kernels."""
     n_geo = colors.shape[1] if geometry_channels is None else int(geometry_channels)
     return _RasterizeCPU.apply(
         means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo

@@ -240,7 +240,7 @@ def test_row_skip_is_exact_against_a_dense_scan():
     # a dense scan of the segment must agree wherever the bound is not within rounding of the minimum.
     import numpy as np
 
-    from langfield.raster.cpu_backend import _row_misses
+    from langfield.raster.composite_cpu import _row_misses
 
     rng = np.random.default_rng(0)
     checked = 0
@@ -310,7 +310,7 @@ def test_second_pass_moves_only_what_it_renders_with(small_camera):
 
 
 def test_second_pass_rejects_footprints_that_differ(small_camera):
-    from langfield.raster.cpu_backend import rasterize_pair_cpu
+    from langfield.raster.composite_cpu import rasterize_pair_cpu
 
     m, c = torch.zeros(2, 2), torch.ones(2, 3)
     with pytest.raises(ValueError, match="footprints"):

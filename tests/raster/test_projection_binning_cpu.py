@@ -10,8 +10,9 @@ from conftest import random_gaussians
 
 from langfield.camera import Camera
 from langfield.raster.binning import TILE_SIZE, bin_gaussians
-from langfield.raster.cpu_geometry import bin_gaussians_cpu, project_gaussians_cpu
+from langfield.raster.binning_cpu import bin_gaussians_cpu
 from langfield.raster.projection import Projected, project_gaussians
+from langfield.raster.projection_cpu import project_gaussians_cpu
 
 
 def project_both(params, cam: Camera, seed: int = 0):
@@ -128,8 +129,8 @@ def test_binning_lists_exactly_the_tiles_a_gaussian_reaches(cam, seed):
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
 def test_cut_tiles_change_no_pixel_and_no_gradient(cam, backend):
     from langfield.raster import composite
-    from langfield.raster.cpu_backend import rasterize_cpu
-    from langfield.raster.torch_backend import rasterize_torch
+    from langfield.raster.composite import rasterize_torch
+    from langfield.raster.composite_cpu import rasterize_cpu
 
     means, quats, scales, opacities, colors = _needles(80, 2)
     proj = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 30)
