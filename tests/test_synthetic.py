@@ -18,12 +18,12 @@ from langfield.synthetic import (
     FEATURE_DIM,
     LEVELS,
     SYNONYMS,
-    _room_primitives,
     distance_to_surfaces,
     distances_to_objects,
     make_room,
     room_layout,
 )
+from langfield.synthetic.room import room_primitives
 
 W, H = 64, 48
 LAYOUT_0_DIGEST = "0d235cc9e5aa1df1"
@@ -248,7 +248,7 @@ def _primitives_digest(prims) -> str:
 def test_layout_0_is_the_built_in_room_of_before_layouts() -> None:
     # The digest of every primitive (vertices, triangles, colours, labels) of seed 0, taken from the
     # generator before layouts existed (f2bd2d4): layout 0 must stay that room, figure for figure.
-    prims = _room_primitives(np.random.default_rng([0, 1]), 1.0, layout=0)
+    prims = room_primitives(np.random.default_rng([0, 1]), 1.0, layout=0)
     assert _primitives_digest(prims) == LAYOUT_0_DIGEST
 
 
