@@ -464,6 +464,16 @@ class Query:
     def phrases(self) -> list[str]:
         return [self._shared.phrases[i] for i in self._rows]
 
+    @property
+    def phrase_embeddings(self) -> Tensor:
+        """``[Q, D]`` the phrases' text embeddings."""
+        return self._shared.embeddings[self._rows]
+
+    @property
+    def canonical_embeddings(self) -> Tensor:
+        """``[C, D]`` the embeddings of the canonical phrases every phrase is compared against."""
+        return self._shared.embeddings[self._shared.n_phrases :]
+
     def __len__(self) -> int:
         return len(self._rows)
 

@@ -28,10 +28,10 @@ from langfield.atomic import atomic_path, check_writable_file
 from langfield.eval.geometry import selection_scores
 from langfield.field import LanguageField
 from langfield.io.scene import Scene
-from langfield.query import fill_empty, text_encoder_for
+from langfield.query import Query, fill_empty, make_query, text_encoder_for
 from querying.evaluation import query_record, summarize_queries
 from querying.metrics import psnr, ssim
-from querying.relevancy import CANONICAL_PHRASES, relevancy, relevancy_mask
+from querying.relevancy import relevancy, relevancy_mask
 from querying.visualize import contact_sheet, heatmap_overlay, mask_overlay
 
 # Ground truth outline colour in the query pictures (the prediction is querying.visualize's MASK_COLOR).
@@ -74,18 +74,16 @@ def evaluate(
     if oracle:
         check_oracle(field, scene, names)
     labels = {name: scene.segmentations(name) for name in names} if field.decoder is not None else {}
-    embeddings = _label_embeddings(field, labels, text_encoder, scene)
+    query = _label_query(field, labels, text_encoder, scene)
     # Before any render: an object name the text encoder lacks stops the evaluation at once.
-    selection = selection_scores(field, scene, text_encoder=text_encoder) if embeddings is not None else None
+    selection = selection_scores(field, scene, text_encoder=text_encoder) if query is not None else None
     views: list[dict[str, Any]] = []
     cosines: list[list[float]] = []
     sheet_tiles: list[np.ndarray] = []
     sheet_labels: list[str] = []
     with torch.no_grad():
         for name in names:
-            record, cosine, tiles = _score_view(
-                field, scene, name, labels.get(name), embeddings, oracle, save
-            )
+            record, cosine, tiles = _score_view(field, scene, name, labels.get(name), query, oracle, save)
             views.append(record)
             if cosine is not None:
                 cosines.append(cosine)
@@ -126,7 +124,7 @@ def _score_view(
     scene: Scene,
     name: str,
     labels: dict | None,
-    embeddings: tuple | None,
+    query: Query | None,
     oracle: bool,
     save: Path | None,
 ) -> tuple[dict[str, Any], list[float] | None, list[np.ndarray]]:
@@ -136,20 +134,18 @@ def _score_view(
     out = field.render(scene.camera(name))
     target = torch.from_numpy(scene.image(name))
     has_cache = out.latents is not None and scene.feature_paths(name) is not None
-    scored = embeddings is not None and out.latents is not None and bool(labels)
-    decoded = field.decode_levels(out.latents) if has_cache or scored else None  # [3, H, W, 512]
+    scored = query is not None and out.latents is not None and bool(labels)
     truth = true_features(scene, name) if has_cache else None  # read once per view
-    cosine = feature_cosine(decoded, truth) if truth is not None else None
+    cosine = feature_cosine(field.decode_levels(out.latents), truth) if truth is not None else None
     queries, extra = {}, {}
     if scored:
-        phrases, phrase_embeddings, canonical_embeddings = embeddings
-        maps = relevancy(decoded, phrase_embeddings, canonical_embeddings)  # [P, 3, H, W]
-        maps = fill_empty(maps, out.alpha)
+        phrases = query.phrases
+        maps = fill_empty(query.relevancy_maps(out.latents, exact=True), out.alpha)  # [P, 3, H, W]
         queries = score_queries(maps, phrases, labels)
         if save is not None:
             write_query_sheet(save, name, out.rgb, maps, phrases, labels, queries)
         if oracle:  # check_oracle made sure every labelled view has its cache
-            true_maps = relevancy(truth, phrase_embeddings, canonical_embeddings)
+            true_maps = relevancy(truth, query.phrase_embeddings, query.canonical_embeddings)
             true_maps = fill_empty(true_maps, masked_pixels(truth).float())
             extra["oracle_queries"] = score_queries(true_maps, phrases, labels)
     record = {"name": name, "PSNR": psnr(out.rgb, target), "SSIM": ssim(out.rgb, target)}
@@ -232,14 +228,14 @@ def _level_means(rows: list[list[float]]) -> dict[str, float | None] | None:
     return means
 
 
-def _label_embeddings(
+def _label_query(
     field: LanguageField,
     labels: dict[str, dict[str, np.ndarray]],
     text_encoder: TextEncoder | str | Path | None,
     scene: Scene,
-) -> tuple[list[str], torch.Tensor, torch.Tensor] | None:
-    """(phrases, [P, D] phrase embeddings, [C, D] canonical embeddings) of every labelled phrase, or
-    None when the scene has no labels or no text encoder can be found (with a warning)."""
+) -> Query | None:
+    """The query of every labelled phrase (the same scoring as ``field.query``), or None when the
+    scene has no labels or no text encoder can be found (with a warning)."""
     phrases = sorted({phrase for masks in labels.values() for phrase in masks})
     if not phrases:
         return None
@@ -251,10 +247,9 @@ def _label_embeddings(
         )
         return None
     try:
-        rows = torch.from_numpy(np.asarray(encoder.encode_text(phrases + list(CANONICAL_PHRASES)))).float()
+        return make_query(field, phrases, encoder, scene=scene)
     except UnknownPhraseError as err:
         raise ValueError(f"{scene.root}/segmentations: a labelled phrase has no embedding: {err}") from err
-    return phrases, rows[: len(phrases)], rows[len(phrases) :]
 
 
 def score_queries(
