@@ -68,6 +68,9 @@ def ground_truth_field(scene, shift: int = 0) -> LanguageField:
         codes.append(code)
         features.append(torch.from_numpy(cache.features))
     field.decoder = CodebookDecoder(torch.cat(codes), torch.cat(features))
+    # Per-Gaussian latents (all zero) make it a field with language, as every field evaluate queries is;
+    # its renders' latents are replaced below.
+    field.splats["lang"] = nn.Parameter(torch.zeros(field.num_gaussians, 9), requires_grad=False)
     names = scene.names("test")
     source = {n: names[(i + shift) % len(names)] for i, n in enumerate(names)}
     render = field.render
