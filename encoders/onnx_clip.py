@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from encoders.manifest import ManifestError, manifest_normalisation, onnx_session, read_manifest
-from encoders.protocols import check_phrases
+from encoders.protocols import check_crops, check_phrases
 
 __all__ = ["ClipTokenizer", "OnnxClipEncoder", "bytes_to_unicode", "clean_text"]
 
@@ -233,14 +233,7 @@ class OnnxClipEncoder:
         Returns:
             [B, dim] float32 unit rows.
         """
-        arr = np.asarray(images)
-        s = self.image_size
-        if arr.ndim != 4 or arr.shape[1:] != (s, s, 3):
-            raise ValueError(
-                f"OnnxClipEncoder.encode_images: images must have shape [B, {s}, {s}, 3], got {arr.shape}"
-            )
-        if not np.issubdtype(arr.dtype, np.floating):
-            raise ValueError(f"OnnxClipEncoder.encode_images: images must be float, got {arr.dtype}")
+        arr = check_crops(images, self.image_size, "OnnxClipEncoder.encode_images")
         if arr.shape[0] == 0:
             return np.zeros((0, self.dim), dtype=np.float32)
         pixels = ((arr.astype(np.float32) - self._mean) / self._std).transpose(0, 3, 1, 2)

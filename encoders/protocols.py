@@ -33,6 +33,7 @@ __all__ = [
     "ImageTextEncoder",
     "Segmenter",
     "TextEncoder",
+    "check_crops",
     "check_image",
     "check_phrases",
 ]
@@ -113,6 +114,17 @@ class DepthEstimator(Protocol):
             [H, W] float32, finite.
         """
         ...
+
+
+def check_crops(images: np.ndarray, size: int, where: str) -> np.ndarray:
+    """The crops an image encoder embeds, as an array, or a ValueError naming ``where``: [B, S, S, 3]
+    floats, S = ``size`` (B may be 0)."""
+    arr = np.asarray(images)
+    if arr.ndim != 4 or arr.shape[1:] != (size, size, 3):
+        raise ValueError(f"{where}: images must have shape [B, {size}, {size}, 3], got {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise ValueError(f"{where}: images must be float, got {arr.dtype}")
+    return arr
 
 
 def check_image(image: np.ndarray, where: str) -> np.ndarray:

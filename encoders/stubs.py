@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from encoders.protocols import DEPTH_KINDS, LEVELS, DepthKind, check_image, check_phrases
+from encoders.protocols import DEPTH_KINDS, LEVELS, DepthKind, check_crops, check_image, check_phrases
 
 __all__ = ["StubDepthEstimator", "StubImageTextEncoder", "StubSegmenter"]
 
@@ -157,15 +157,7 @@ class StubImageTextEncoder:
         Returns:
             [B, dim] float32 unit rows.
         """
-        arr = np.asarray(images)
-        s = self.image_size
-        if arr.ndim != 4 or arr.shape[1:] != (s, s, 3):
-            raise ValueError(
-                f"StubImageTextEncoder.encode_images: images must have shape [B, {s}, {s}, 3], "
-                f"got {arr.shape}"
-            )
-        if not np.issubdtype(arr.dtype, np.floating):
-            raise ValueError(f"StubImageTextEncoder.encode_images: images must be float, got {arr.dtype}")
+        arr = check_crops(images, self.image_size, "StubImageTextEncoder.encode_images")
         b = arr.shape[0]
         pixels = arr.reshape(b, -1, 3).astype(np.float32)
         cells = np.clip(np.floor(pixels * self.bins), 0, self.bins - 1).astype(np.int64)
