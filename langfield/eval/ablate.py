@@ -10,8 +10,8 @@ Cases (each a :class:`~langfield.training.trainer.TrainConfig` change from the f
 - ``paper-language``: the paper's autoencoder (eq. 2 alone, no spread term) and its reading of a
   rendered latent (decoded as it is, no codebook);
 - ``no-opacity-reg`` (not in the default set): without the L1 opacity penalty (``lambda_opacity=0``);
-- ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP; the comparison of
-  issue 5's mIoU target.
+- ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP: LangSplat's way with
+  the sparse-view training, the reference the full method is measured against.
 
 The sparse-view switches (:mod:`langfield.training.regularisers`,
 :mod:`langfield.training.initialisation`), each one change from the defaults:

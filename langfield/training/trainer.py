@@ -99,12 +99,12 @@ class TrainConfig:
     language_features: Literal["hashgrid", "per-gaussian"] = "hashgrid"
     lambda_language: float = 1.0
     # MLP_L's hidden width; the paper gives none. 32 (against 64): the MLP maps 12 grid features to a
-    # 3-d latent; its cost is ~5 ms per step less on 2 cores, novel-view mIoU no lower (issue 3's note).
+    # 3-d latent; its cost is ~5 ms per step less on 2 cores, novel-view mIoU no lower.
     language_hidden: int = 32
     # The language grid's finest resolution as a fraction of the colour grid's (levels halved): language
     # is constant over a part, and fine levels only hash-collide across objects; 1.0 gives the colour
     # layout. Built-in scene, 1500 it.: novel-view mIoU 0.153 -> 0.170 (seed 0) with 0.25 and hidden 32,
-    # and the language field's cost per iteration drops by about half (issue 3's note).
+    # and the language field's cost per iteration drops by about half.
     language_grid_scale: float = 0.25
     per_gaussian_language_lr: float = 2.5e-3  # LangSplat's language_feature_lr
     # L_LF from this fraction of the run on: before it the latents are neither rendered nor trained (their
