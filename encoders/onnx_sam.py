@@ -6,7 +6,7 @@ LangSplat (``preprocess.py`` and its fork ``segment-anything-langsplat``, whose
 multimask outputs of every point prompt apart: output 0 -> small (subpart), 1 -> medium (part),
 2 -> large (whole). These are SAM's mask tokens 1-3 (token 0 is the single-mask output); SAM's paper
 motivates three outputs by "nested masks are often at most three deep: whole, part, and subpart".
-Each level is then filtered on its own (DESIGN.md, "Language supervision"):
+Each level is then filtered on its own (docs/how-it-works.md, "Language"):
 
 1. a ``points_per_side`` x ``points_per_side`` grid of single-point prompts (SAM ``build_point_grid``),
    decoded ``points_per_batch`` at a time against one image embedding;
@@ -26,7 +26,7 @@ product of the flattened low-resolution masks, where LangSplat's ``mask_nms`` vi
 full-size masks in a Python loop.
 
 LangSplat also runs one extra layer of image crops (``crop_n_layers=1``); this runtime does not, as
-DESIGN.md asks for the 32 x 32 grid on the whole image only.
+The design asks for the 32 x 32 grid on the whole image only.
 
 The two ONNX models (written by :func:`encoders.export.sam.export_sam`) are SAM's image encoder
 (normalised, longest-side resized, zero-padded [1, 3, S, S] image -> [1, C, S/16, S/16] embedding;

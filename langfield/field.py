@@ -154,7 +154,7 @@ class LanguageField(nn.Module):
     def gaussian_latents(self, corners: tuple[Tensor, Tensor] | None = None) -> Tensor | None:
         """[N, 3, 3] language latents of every Gaussian (level, latent), or None without language.
 
-        The hash grid reads detached positions: L_LF must not move the Gaussians (DESIGN.md).
+        The hash grid reads detached positions: L_LF must not move the Gaussians (docs/how-it-works.md).
         ``corners``: the colour grid's cell look-up of the means, reused when the grids share a layout.
         """
         if "lang" in self.splats:

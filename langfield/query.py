@@ -1,4 +1,4 @@
-"""Text queries of a trained field: relevance maps, masks and 3D selections (DESIGN.md, "Querying").
+"""Text queries of a trained field: relevance maps, masks and 3D selections (docs/how-it-works.md).
 
 ``field.query("sofa")`` embeds the phrase (and the canonical phrases ``object``, ``things``, ``stuff``,
 ``texture``) once with the field's text encoder and returns a :class:`Query`, evaluated lazily per
@@ -439,7 +439,7 @@ def _one_thread(enabled: bool = True) -> Iterator[None]:
 
 
 class Query:
-    """Phrases embedded once, evaluated lazily per camera (``field.query(...)``; DESIGN.md, "Public API").
+    """Phrases embedded once, evaluated lazily per camera (``field.query(...)``; docs/api.md).
 
     Cameras are a :class:`~langfield.camera.Camera` (a scene's own or ``Camera.look_at(...)``) or a view
     of the field's scene by name or index. A query of one phrase returns results without a phrase axis;

@@ -67,7 +67,7 @@ from querying.metrics import psnr, ssim_map
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Training settings; defaults from the paper, DNGaussian and 3DGS (sources in DESIGN.md).
+    """Training settings; defaults from the paper, DNGaussian and 3DGS (sources in docs/how-it-works.md).
 
     ``None`` means "sized to the scene": the initial Gaussian count and the hash-table size follow
     the scene's bounds and training pixels; the values used are recorded in field.json.
