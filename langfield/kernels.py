@@ -17,7 +17,28 @@ import importlib
 import os
 import sys
 
-__all__ = ["KERNEL_MODULES", "configure_numba_threads", "notice_once", "uncompiled_kernels"]
+__all__ = [
+    "BACKENDS",
+    "KERNEL_MODULES",
+    "configure_numba_threads",
+    "notice_once",
+    "resolve_backend",
+    "uncompiled_kernels",
+]
+
+# The backends, for the rasterizer (langfield.raster.kernels) and the hash grid alike: "torch" the
+# PyTorch references, "cpu" the numba kernels; "auto" chooses "cpu".
+BACKENDS: tuple[str, ...] = ("torch", "cpu")
+
+
+def resolve_backend(backend: str) -> str:
+    """The concrete backend name for ``backend`` ("auto" -> "cpu")."""
+    if backend == "auto":
+        return "cpu"
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown rasterizer backend {backend!r}; choose from auto, {', '.join(BACKENDS)}")
+    return backend
+
 
 # The modules whose numba kernels are cached on disk.
 KERNEL_MODULES = (

@@ -18,13 +18,13 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
+from langfield.kernels import BACKENDS
 from langfield.model.hashgrid import HashGridConfig
 
 __all__ = ["FieldFileError", "FieldMeta", "check_field_meta", "check_tensors"]
 
 LANGUAGE_FEATURES = ("hashgrid", "per-gaussian")
 TEXT_ENCODER_KINDS = ("table", "clip-onnx")
-BACKEND_NAMES = ("auto", "torch", "cpu")
 
 
 class FieldFileError(ValueError):
@@ -210,7 +210,7 @@ def check_field_meta(meta: Any, path: Path, readable: tuple[int, ...]) -> dict[s
     c.whole(meta, "color_field.hidden", 1)
     c.whole(meta, "color_field.n_freqs", 0)
     c.numbers(meta, "background", 3, optional=True)
-    c.choice(meta, "backend", BACKEND_NAMES, optional=True)
+    c.choice(meta, "backend", ("auto", *BACKENDS), optional=True)
     bounds = meta.get("bounds")
     if bounds is not None and not (
         isinstance(bounds, list) and len(bounds) == 2 and all(isinstance(b, list) for b in bounds)

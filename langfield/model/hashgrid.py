@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from langfield.kernels import notice_once
+from langfield.kernels import notice_once, resolve_backend
 from langfield.model.hashgrid_cpu import InterpolateRowsNumba
 
 # Instant-NGP's spatial-hash primes (paper eq. 4); the first is 1 for cache coherence.
@@ -278,7 +278,7 @@ class HashGrid(nn.Module):
         f = self.cfg.features_per_level
         if groups < 1 or f % groups:
             raise ValueError(f"groups must divide features_per_level={f}, got {groups}")
-        if self.backend != "torch" and self.table.device.type == "cpu":
+        if resolve_backend(self.backend) == "cpu" and self.table.device.type == "cpu":
             notice_once()
             out = InterpolateRowsNumba.apply(
                 self.table.view(-1, f), rows, frac.to(self.table.dtype), self.cfg.table_size, groups

@@ -15,12 +15,12 @@ import torch
 from torch import Tensor
 
 from langfield.camera import Camera
+from langfield.kernels import BACKENDS, resolve_backend
 from langfield.raster.binning import bin_gaussians
 from langfield.raster.composite import rasterize_torch
 from langfield.raster.projection import NEAR_PLANE, Projected, project_gaussians, quat_to_rotmat
 
 Backend = Literal["auto", "torch", "cpu"]
-BACKENDS: tuple[str, ...] = ("torch", "cpu")
 
 
 class RasterOutput(NamedTuple):
@@ -37,15 +37,6 @@ class RasterOutput(NamedTuple):
     alpha: Tensor
     means2d: Tensor
     radii: Tensor
-
-
-def resolve_backend(backend: Backend) -> str:
-    """The concrete backend name for ``backend`` ("auto" -> "cpu")."""
-    if backend == "auto":
-        return "cpu"
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown rasterizer backend {backend!r}; choose from auto, {', '.join(BACKENDS)}")
-    return backend
 
 
 class Kernels(NamedTuple):
