@@ -60,6 +60,18 @@ def read_rgba(path: Path) -> np.ndarray:
     raise SceneError(f"{path}: unsupported image with {channels} channels")
 
 
+def read_mask(path: Path, what: str, camera: Camera) -> np.ndarray:
+    """[H, W] bool, non-zero = inside, of a mask image (grey or colour) at its stored size, checked
+    against the view's native camera; ``what`` names it in the errors."""
+    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if mask is None:
+        raise SceneError(f"{path}: cannot read {what}")
+    if mask.ndim == 3:
+        mask = (mask != 0).any(axis=2)
+    check_map_shape(path, mask.shape, camera)
+    return mask != 0
+
+
 def check_map_shape(path: Path, shape: tuple[int, ...], cam: Camera) -> None:
     """A per-pixel map must be 2-D with the image's aspect ratio (any size; it is resized)."""
     expected = f"({cam.height}, {cam.width}) or the same aspect ratio"

@@ -40,7 +40,7 @@ from langfield.constants import (
 from langfield.io import colmap as colmap
 from langfield.io.bounds import clipped_near_far, near_far_box, shared_frustum_box
 from langfield.io.colmap import read_colmap
-from langfield.io.images import check_map_shape, has_alpha, load_npy, read_rgba, resize, undistort
+from langfield.io.images import check_map_shape, has_alpha, load_npy, read_mask, read_rgba, resize, undistort
 from langfield.io.layout import SPLITS, Layout, SceneError, listing
 from langfield.io.llff import read_llff
 from langfield.io.nerf import read_blender, read_transforms
@@ -179,13 +179,7 @@ class Scene:
         path = self.root / MASKS_DIR / f"{self.views[i].name}.png"
         if not path.is_file():
             return None
-        mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if mask is None:
-            raise SceneError(f"{path}: cannot read object mask")
-        if mask.ndim == 3:
-            mask = (mask != 0).any(axis=2)
-        check_map_shape(path, mask.shape, self._layout.frames[i].camera)
-        inside = (mask != 0).astype(np.float32)
+        inside = read_mask(path, "object mask", self._layout.frames[i].camera).astype(np.float32)
         return self._align(i, inside, cv2.INTER_AREA, cv2.BORDER_CONSTANT) >= 0.5
 
     def segmentations(self, name: str | int) -> dict[str, np.ndarray]:
@@ -196,13 +190,7 @@ class Scene:
             return {}
         masks = {}
         for path in sorted(folder.glob("*.png")):
-            mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if mask is None:
-                raise SceneError(f"{path}: cannot read segmentation mask")
-            if mask.ndim == 3:
-                mask = (mask != 0).any(axis=2)
-            check_map_shape(path, mask.shape, self._layout.frames[i].camera)
-            inside = (mask != 0).astype(np.uint8)
+            inside = read_mask(path, "segmentation mask", self._layout.frames[i].camera).astype(np.uint8)
             masks[path.stem] = self._align(i, inside, cv2.INTER_NEAREST, cv2.BORDER_CONSTANT) > 0
         return masks
 

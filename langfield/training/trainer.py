@@ -397,6 +397,17 @@ class LanguageTargets:
     prototypes: list[Tensor]  # per level, [P_l, 3] distinct latents of the masks used there (LOP)
 
 
+def _all_or_none(names: list[str], have: list[str], wanted: bool | None, what: str, otherwise: str) -> None:
+    """Refuses training views of which only some have an input (or none, where it is ``wanted``)."""
+    missing = [n for n in names if n not in have]
+    if missing and (wanted or have):
+        raise ValueError(
+            f"{what} for training views {missing}"
+            + (f" (views {have} have one)" if have else "")
+            + f"; run `langfield preprocess` or {otherwise}"
+        )
+
+
 def check_inputs(scene: Scene, cfg: TrainConfig, progress: bool = True) -> None:
     """Reads and checks every file training and the evaluation after it will read, before any work:
     each view's image (its size against its intrinsics), depth prior, feature cache and segmentation
@@ -413,22 +424,12 @@ def check_inputs(scene: Scene, cfg: TrainConfig, progress: bool = True) -> None:
         scene.check_view(name)
     if cfg.language is not False:
         have = [n for n in train_names if scene.feature_paths(n) is not None]
-        missing = [n for n in train_names if n not in have]
-        if missing and (cfg.language or have):
-            raise ValueError(
-                f"{scene.root}/language_features: no feature cache for training views {missing}"
-                + (f" (views {have} have one)" if have else "")
-                + "; run `langfield preprocess` or train without language (--no-language)"
-            )
+        _all_or_none(train_names, have, cfg.language, f"{scene.root}/language_features: no feature cache",
+                     "train without language (--no-language)")  # fmt: skip
     if cfg.depth is not False:
         have = [n for n in train_names if scene.depth_path(n) is not None]
-        missing = [n for n in train_names if n not in have]
-        if missing and (cfg.depth or have):
-            raise ValueError(
-                f"{scene.root}/depths: no depth prior for training views {missing}"
-                + (f" (views {have} have one)" if have else "")
-                + "; run `langfield preprocess` or train without it (--no-depth)"
-            )
+        _all_or_none(train_names, have, cfg.depth, f"{scene.root}/depths: no depth prior",
+                     "train without it (--no-depth)")  # fmt: skip
         if have and scene.depth_kind is None:
             raise ValueError(
                 f"{scene.root}: depths/ needs depth_kind ('depth' or 'disparity') in transforms.json"
