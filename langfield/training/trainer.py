@@ -604,6 +604,54 @@ def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
     )
 
 
+def _language_parts(
+    cfg: TrainConfig,
+    targets: LanguageTargets | None,
+    grid: HashGridConfig,
+    center: np.ndarray,
+    half_extent: float,
+    splats: torch.nn.ParameterDict,
+) -> tuple[LanguageHeads | None, Any, list[Tensor] | None, dict[str, Any] | None]:
+    """The language part of a new field: its heads (a hash grid) or per-Gaussian latents (added to
+    ``splats``), the frozen decoder, the codebook and what field.json records of them; all None
+    without ``targets``."""
+    if targets is None:
+        return None, None, None, None
+    language = codebook = None
+    n = len(splats["means"])
+    if cfg.language_features == "per-gaussian":
+        splats["lang"] = torch.nn.Parameter(torch.zeros(n, LANGUAGE_CHANNELS))
+    elif cfg.language_features == "hashgrid":
+        lang_grid = grid
+        if cfg.language_grid_scale != 1.0:
+            finest = max(grid.base_resolution, round(grid.finest_resolution * cfg.language_grid_scale))
+            levels = max(2, round(grid.n_levels * cfg.language_grid_scale**0.5))
+            lang_grid = replace(grid, finest_resolution=finest, n_levels=levels)
+        language = LanguageHeads(
+            lang_grid,
+            torch.tensor(center, dtype=torch.float32),
+            float(half_extent),
+            hidden=cfg.language_hidden,
+        )
+    else:
+        raise ValueError(
+            f"language_features must be 'hashgrid' or 'per-gaussian', got {cfg.language_features!r}"
+        )
+    decoder = load_decoder(decoder_state(targets.autoencoder), targets.config).requires_grad_(False)
+    if cfg.language_decode == "codebook":
+        codebook = [torch.nn.functional.normalize(p, dim=-1) for p in targets.prototypes]
+    language_meta = {
+        "features": cfg.language_features,
+        "hidden": cfg.language_hidden,
+        "grid": asdict(grid if language is None else language.grid.cfg),
+        "levels": list(LEVELS[:N_LEVELS]),
+        "autoencoder": asdict(targets.config),
+        "autoencoder_stats": targets.stats,
+        "codebook": None if codebook is None else [int(c.shape[0]) for c in codebook],
+    }
+    return language, decoder, codebook, language_meta
+
+
 def build_field(
     scene: Scene,
     cfg: TrainConfig,
@@ -633,39 +681,9 @@ def build_field(
         hidden=cfg.color_hidden,
         n_freqs=cfg.color_freqs,
     )
-    language = decoder = codebook = None
-    language_meta = None
-    if targets is not None:
-        if cfg.language_features == "per-gaussian":
-            splats["lang"] = torch.nn.Parameter(torch.zeros(n, LANGUAGE_CHANNELS))
-        elif cfg.language_features == "hashgrid":
-            lang_grid = grid
-            if cfg.language_grid_scale != 1.0:
-                finest = max(grid.base_resolution, round(grid.finest_resolution * cfg.language_grid_scale))
-                levels = max(2, round(grid.n_levels * cfg.language_grid_scale**0.5))
-                lang_grid = replace(grid, finest_resolution=finest, n_levels=levels)
-            language = LanguageHeads(
-                lang_grid,
-                torch.tensor(center, dtype=torch.float32),
-                float(half_extent),
-                hidden=cfg.language_hidden,
-            )
-        else:
-            raise ValueError(
-                f"language_features must be 'hashgrid' or 'per-gaussian', got {cfg.language_features!r}"
-            )
-        decoder = load_decoder(decoder_state(targets.autoencoder), targets.config).requires_grad_(False)
-        if cfg.language_decode == "codebook":
-            codebook = [torch.nn.functional.normalize(p, dim=-1) for p in targets.prototypes]
-        language_meta = {
-            "features": cfg.language_features,
-            "hidden": cfg.language_hidden,
-            "grid": asdict(grid if language is None else language.grid.cfg),
-            "levels": list(LEVELS[:N_LEVELS]),
-            "autoencoder": asdict(targets.config),
-            "autoencoder_stats": targets.stats,
-            "codebook": None if codebook is None else [int(c.shape[0]) for c in codebook],
-        }
+    language, decoder, codebook, language_meta = _language_parts(
+        cfg, targets, grid, center, half_extent, splats
+    )
     background = None if scene.background is None else [float(v) for v in scene.background]
     meta: dict[str, Any] = {
         "config": asdict(cfg),
