@@ -222,22 +222,29 @@ def plane_sweep(
             total += np.where(valid, zncc, 0.0)
             count += valid
         scores[i] = np.where(count > 0, total / np.maximum(count, 1.0), -1.0)
-    best = scores.argmax(axis=0)
-    best_score = np.take_along_axis(scores, best[None], 0)[0]
-    # Sub-plane refinement: the vertex of the parabola through the best score and its neighbours.
-    lo = np.clip(best - 1, 0, cfg.planes - 1)
-    hi = np.clip(best + 1, 0, cfg.planes - 1)
-    s_lo = np.take_along_axis(scores, lo[None], 0)[0]
-    s_hi = np.take_along_axis(scores, hi[None], 0)[0]
-    denom = s_lo - 2 * best_score + s_hi
-    interior = (best > 0) & (best < cfg.planes - 1) & (denom < -1e-6)
-    offset = np.where(interior, 0.5 * (s_lo - s_hi) / np.where(interior, denom, -1.0), 0.0)
-    step = inv_depths[1] - inv_depths[0] if cfg.planes > 1 else 0.0
-    inv = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
-    depth = (1.0 / inv).astype(np.float32)
+    depth, best_score, interior = _best_depth(scores, inv_depths)
     # The end planes are the range's edges, not surfaces found there.
     best_score = np.where(flat | ~interior, -1.0, best_score).astype(np.float32)
     return depth, best_score
+
+
+def _best_depth(scores: np.ndarray, inv_depths: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel the best of the planes' ``scores`` [P, H, W], refined below a plane's step by the
+    vertex of the parabola through the best score and its neighbours (in 1/d): (z-depth, best score,
+    whether the best plane is an interior one with a true maximum)."""
+    planes = len(inv_depths)
+    best = scores.argmax(axis=0)
+    best_score = np.take_along_axis(scores, best[None], 0)[0]
+    lo = np.clip(best - 1, 0, planes - 1)
+    hi = np.clip(best + 1, 0, planes - 1)
+    s_lo = np.take_along_axis(scores, lo[None], 0)[0]
+    s_hi = np.take_along_axis(scores, hi[None], 0)[0]
+    denom = s_lo - 2 * best_score + s_hi
+    interior = (best > 0) & (best < planes - 1) & (denom < -1e-6)
+    offset = np.where(interior, 0.5 * (s_lo - s_hi) / np.where(interior, denom, -1.0), 0.0)
+    step = inv_depths[1] - inv_depths[0] if planes > 1 else 0.0
+    inv = inv_depths[best] + np.clip(offset, -0.5, 0.5) * step
+    return (1.0 / inv).astype(np.float32), best_score, interior
 
 
 def _consistent(

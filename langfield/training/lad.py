@@ -116,17 +116,7 @@ class LADTarget:
         Returns:
             The view's :class:`LADTarget` (tensors on ``prior``'s device, float32).
         """
-        if depth_kind not in DEPTH_KINDS:
-            raise ValueError(f"depth_kind must be 'depth' or 'disparity', got {depth_kind!r}")
-        if prior.ndim != 2 or not prior.is_floating_point():
-            raise ValueError(f"prior must be a float [H, W] tensor, got {prior.dtype} {tuple(prior.shape)}")
-        if segments.ndim != 3 or segments.shape[1:] != prior.shape or segments.is_floating_point():
-            raise ValueError(
-                f"segments must be an integer [L, H, W] tensor with (H, W) = {tuple(prior.shape)}, "
-                f"got {segments.dtype} {tuple(segments.shape)}"
-            )
-        if min_pixels < 1:
-            raise ValueError(f"min_pixels must be >= 1, got {min_pixels}")
+        _check_view_inputs(segments, prior, depth_kind, min_pixels)
         device = prior.device
         p = prior.detach().to(torch.float64).flatten()
         if depth_kind == "disparity":
@@ -174,6 +164,20 @@ class LADTarget:
             valid_index=valid_index,
             prior_global=prior_global.to(torch.float32),
         )
+
+
+def _check_view_inputs(segments: Tensor, prior: Tensor, depth_kind: str, min_pixels: int) -> None:
+    if depth_kind not in DEPTH_KINDS:
+        raise ValueError(f"depth_kind must be 'depth' or 'disparity', got {depth_kind!r}")
+    if prior.ndim != 2 or not prior.is_floating_point():
+        raise ValueError(f"prior must be a float [H, W] tensor, got {prior.dtype} {tuple(prior.shape)}")
+    if segments.ndim != 3 or segments.shape[1:] != prior.shape or segments.is_floating_point():
+        raise ValueError(
+            f"segments must be an integer [L, H, W] tensor with (H, W) = {tuple(prior.shape)}, "
+            f"got {segments.dtype} {tuple(segments.shape)}"
+        )
+    if min_pixels < 1:
+        raise ValueError(f"min_pixels must be >= 1, got {min_pixels}")
 
 
 def _segment_reduce(values: Tensor, segment: Tensor, num: int, reduce: Literal["amin", "amax"]) -> Tensor:
