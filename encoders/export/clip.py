@@ -81,22 +81,7 @@ def export_clip(
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "manifest.json").unlink(missing_ok=True)  # the folder is incomplete until the new manifest
-    pixels = torch.from_numpy(np.random.default_rng(0).standard_normal((2, 3, size, size), dtype=np.float32))
-    tokens = tokenizer(list(_EXAMPLE_PHRASES))
-    towers = {
-        "image": (_ImageTower(model), pixels, "pixels"),
-        "text": (_TextTower(model), tokens, "tokens"),
-    }
-    files: dict[str, str] = {}
-    errors: dict[str, float] = {}
-    dim = None
-    for role, (tower, example, input_name) in towers.items():
-        names, err, out_dim = _export_tower(tower, example, input_name, out / f"{role}.onnx")
-        files.update({role if i == 0 else f"{role}_data": n for i, n in enumerate(names)})
-        errors[f"{role}_max_abs_err"] = err
-        dim = out_dim if dim is None else dim
-        if out_dim != dim:
-            raise ValueError(f"export_clip: image and text towers give dimensions {dim} and {out_dim}")
+    files, errors, dim = _export_towers(model, tokenizer, size, out)
     vocab = Path(open_clip.tokenizer.default_bpe())
     shutil.copyfile(vocab, out / vocab.name)
     files["vocab"] = vocab.name
@@ -121,6 +106,30 @@ def export_clip(
         opset=OPSET,
         check=errors,
     )
+
+
+def _export_towers(
+    model: Any, tokenizer: Any, size: int, out: Path
+) -> tuple[dict[str, str], dict[str, float], int]:
+    """Exports the image and the text tower to ``out``; returns (the files by role, each tower's largest
+    difference to PyTorch, the embedding dimension the towers share)."""
+    pixels = torch.from_numpy(np.random.default_rng(0).standard_normal((2, 3, size, size), dtype=np.float32))
+    tokens = tokenizer(list(_EXAMPLE_PHRASES))
+    towers = {
+        "image": (_ImageTower(model), pixels, "pixels"),
+        "text": (_TextTower(model), tokens, "tokens"),
+    }
+    files: dict[str, str] = {}
+    errors: dict[str, float] = {}
+    dim = None
+    for role, (tower, example, input_name) in towers.items():
+        names, err, out_dim = _export_tower(tower, example, input_name, out / f"{role}.onnx")
+        files.update({role if i == 0 else f"{role}_data": n for i, n in enumerate(names)})
+        errors[f"{role}_max_abs_err"] = err
+        dim = out_dim if dim is None else dim
+        if out_dim != dim:
+            raise ValueError(f"export_clip: image and text towers give dimensions {dim} and {out_dim}")
+    return files, errors, dim
 
 
 def _import_open_clip() -> Any:

@@ -87,6 +87,33 @@ def export_refiner(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / MANIFEST).unlink(missing_ok=True)  # the folder is incomplete until the new manifest
+    examples, expected = _run_examples(module, hw, confidence)
+    path = out / _FILE
+    _export(module, examples[0], path, dynamic_hw=hw is None)
+    err, scale = _check(path, examples, [y.numpy() for y in expected])
+    if not err <= EXPORT_TOL * max(1.0, scale):
+        raise ValueError(
+            f"export_refiner: {path} differs from PyTorch by {err:.3g} (outputs up to {scale:.3g})"
+        )
+    return write_manifest(
+        out,
+        "refiner",
+        name,
+        {"model": _FILE},
+        input_size=None if hw is None else list(hw),
+        mean=mean_,
+        std=std_,
+        confidence=confidence,
+        opset=OPSET,
+        check={"max_abs_err": err, "max_abs_output": scale},
+    )
+
+
+def _run_examples(
+    module: torch.nn.Module, hw: tuple[int, int] | None, confidence: bool
+) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Random inputs at the export's size (several sizes for a dynamic one) and the module's outputs,
+    checked to be [B, 3 | 4, H', W'] as ``confidence`` says."""
     rng = np.random.default_rng(0)
     sizes = _DYNAMIC_SIZES if hw is None else (hw,)
     examples = [torch.from_numpy(rng.standard_normal((2, 3, *s), dtype=np.float32)) for s in sizes]
@@ -108,25 +135,7 @@ def export_refiner(
                 f"export_refiner: the module must return [B, {channels}, H, W] for input {tuple(x.shape)} "
                 f"(confidence={confidence}), got {got}"
             )
-    path = out / _FILE
-    _export(module, examples[0], path, dynamic_hw=hw is None)
-    err, scale = _check(path, examples, [y.numpy() for y in expected])
-    if not err <= EXPORT_TOL * max(1.0, scale):
-        raise ValueError(
-            f"export_refiner: {path} differs from PyTorch by {err:.3g} (outputs up to {scale:.3g})"
-        )
-    return write_manifest(
-        out,
-        "refiner",
-        name,
-        {"model": _FILE},
-        input_size=None if hw is None else list(hw),
-        mean=mean_,
-        std=std_,
-        confidence=confidence,
-        opset=OPSET,
-        check={"max_abs_err": err, "max_abs_output": scale},
-    )
+    return examples, expected
 
 
 def _size(size: int | Sequence[int] | None) -> tuple[int, int] | None:
