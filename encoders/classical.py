@@ -1,6 +1,6 @@
 """A segmenter without weights: Felzenszwalb-Huttenlocher graph segmentation at three scales.
 
-The design (docs/how-it-works.md, "Language") keeps a classical fallback beside SAM, so a scene can be
+langfield keeps a classical fallback beside SAM, so a scene can be
 preprocessed with no model download at all. Felzenszwalb and Huttenlocher's "Efficient Graph-Based
 Image Segmentation" (IJCV 2004) merges 8-connected pixels along edges of increasing colour
 difference while the difference stays below each region's internal difference plus k / |region|;

@@ -6,7 +6,7 @@ LangSplat (``preprocess.py`` and its fork ``segment-anything-langsplat``, whose
 multimask outputs of every point prompt apart: output 0 -> small (subpart), 1 -> medium (part),
 2 -> large (whole). These are SAM's mask tokens 1-3 (token 0 is the single-mask output); SAM's paper
 motivates three outputs by "nested masks are often at most three deep: whole, part, and subpart".
-Each level is then filtered on its own (docs/how-it-works.md, "Language"):
+Each level is then filtered on its own:
 
 1. a ``points_per_side`` x ``points_per_side`` grid of single-point prompts (SAM ``build_point_grid``),
    decoded ``points_per_batch`` at a time against one image embedding;

@@ -1,6 +1,6 @@
 """The small protocols every 2D foundation model of langfield sits behind.
 
-SOVGaussian supervises its field with three 2D models (docs/how-it-works.md, "Language"):
+SOVGaussian supervises its field with three 2D models:
 
 - a :class:`Segmenter` gives masks at three levels (subpart, part, whole), as SAM's three multimask
   outputs per point prompt do in LangSplat;

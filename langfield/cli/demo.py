@@ -58,9 +58,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 DEMO_PHRASES = ("sofa", "couch", "lamp", "mug")
 
 
-DEMO_PHRASES = ("sofa", "couch", "lamp", "mug")
-
-
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Registers ``langfield demo``."""
     p = sub.add_parser("demo", help="generate the built-in scene, train on 3 views, render and report")

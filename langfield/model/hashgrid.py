@@ -157,7 +157,7 @@ class HashGrid(nn.Module):
     Args:
         cfg: grid sizes.
         center: [3] centre of the grid box in world coordinates.
-        half_extent: [3] or scalar half-size of the box per axis (> 0). DESIGN uses
+        half_extent: [3] or scalar half-size of the box per axis (> 0). Training uses
             ``scene extent / 2 x 1.2`` around the scene centre; this class takes the box as given.
 
     Attributes:

@@ -202,7 +202,7 @@ def local_outlier_factor(positions: Tensor, k: int = LOP_GAMMA) -> Tensor:
 def assign_groups(
     latents: Tensor, prototypes: Sequence[Tensor], levels: Sequence[int] = LOP_LEVELS
 ) -> Tensor:
-    """Each Gaussian's group at each level: the index of its nearest prototype (DESIGN LOP step 2).
+    """Each Gaussian's group at each level: the index of its nearest prototype (LOP's step 2).
 
     Args:
         latents: [N, L, 3] language latents phi of the Gaussians (L = 3 levels).

@@ -67,7 +67,7 @@ from querying.metrics import psnr, ssim_map
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Training settings; defaults from the paper, DNGaussian and 3DGS (sources in docs/how-it-works.md).
+    """Training settings; defaults from the paper, DNGaussian and 3DGS (each setting's comment).
 
     ``None`` means "sized to the scene": the initial Gaussian count and the hash-table size follow
     the scene's bounds and training pixels; the values used are recorded in field.json.
@@ -672,7 +672,7 @@ def build_field(
     if cfg.log2_table_size is not None:
         grid = replace(grid, log2_table_size=cfg.log2_table_size)
     center = (bounds[0] + bounds[1]) / 2
-    half_extent = (bounds[1] - bounds[0]).max() / 2 * 1.2  # DESIGN: scene extent / 2 x 1.2
+    half_extent = (bounds[1] - bounds[0]).max() / 2 * 1.2  # scene extent / 2 x 1.2
     torch.manual_seed(cfg.seed)
     color = ColorField(
         grid,

@@ -1,4 +1,4 @@
-"""Tests of the ``langfield`` command (cli.py), called in-process through ``main``."""
+"""Tests of the ``langfield`` command (langfield/cli/), called in-process through ``main``."""
 
 from __future__ import annotations
 

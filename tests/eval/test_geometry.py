@@ -1,4 +1,4 @@
-"""geometry_eval.depth_agreement: the training views' rendered depths describe one surface or not."""
+"""eval.geometry.depth_agreement: the training views' rendered depths describe one surface or not."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Tests of the depth losses (depth_loss.py): LAD (eq. 6, 9), the global term (eq. 10) and L_D (eq. 11)."""
+"""The depth losses (training/lad.py): LAD (eq. 6, 9), the global term (eq. 10) and L_D (eq. 11)."""
 
 from __future__ import annotations
 

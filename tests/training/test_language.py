@@ -112,7 +112,7 @@ def test_unknown_language_features_mode_is_rejected(scene):
 @pytest.mark.slow
 def test_language_training_fits_the_training_views(scene):
     # The random start fits the training views fastest (the photos' start trades some of that fit for
-    # novel views: tests/test_initialisation.py); this test is about the language heads, which it
+    # novel views: tests/training/test_initialisation.py); this test is about the language heads, which it
     # trains from the first step (the default starts them after a third of the run).
     cfg = TrainConfig(iterations=300, seed=0, init="random", language_start=0.0)
     f = train(scene, cfg, progress=False)
