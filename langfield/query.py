@@ -335,7 +335,9 @@ class _Shared:
         if isinstance(key, Camera):
             return key
         if self.scene is None:
-            self.scene = self.field.trained_scene(remedy=f"camera {key!r}: pass a Camera or scene=")
+            if not self.field.meta.scene:
+                raise ValueError(f"camera {key!r}: the field records no scene; pass a Camera or scene=")
+            self.scene = self.field.trained_scene()
         return self.scene.camera(key)
 
     def gaussian_inputs(self) -> tuple[Tensor, ...]:
