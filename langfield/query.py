@@ -314,7 +314,7 @@ def _decoder_lattice(field: LanguageField) -> _DecoderLattice:
 
 class _Shared:
     """What the phrases of one ``field.query`` call share: embeddings, the Gaussians' latents, the
-    lattice channels, the last view's latents, the scene and the 3D selections."""
+    lattice channels, the last view's latents, the scene and the Gaussians' relevancy."""
 
     def __init__(self, field: LanguageField, phrases: list[str], embeddings: Tensor, scene: Scene | None):
         self.field = field
@@ -324,7 +324,7 @@ class _Shared:
         self.gaussians: tuple[Tensor, ...] | None = None
         self.channels: Tensor | None = None
         self.last_render: tuple[Camera, Tensor, Tensor] | None = None
-        self.selections: list[Selection] | None = None
+        self.gaussian_rel: Tensor | None = None
         self.code_tables: list[Tensor] | None = None
 
     @property
@@ -339,6 +339,15 @@ class _Shared:
                 raise ValueError(f"camera {key!r}: the field records no scene; pass a Camera or scene=")
             self.scene = self.field.trained_scene()
         return self.scene.camera(key)
+
+    def gaussian_relevancy(self) -> Tensor:
+        """``[Q, 3, N]`` every phrase's relevancy at each Gaussian's three latents, decoded exactly;
+        computed once."""
+        if self.gaussian_rel is None:
+            with torch.no_grad():
+                latents = self.field.gaussian_latents()  # [N, 3, 3]
+                self.gaussian_rel = self.exact_relevancy(latents.transpose(0, 1))
+        return self.gaussian_rel
 
     def gaussian_inputs(self) -> tuple[Tensor, ...]:
         """Means, rotations, scales, opacities and ``[N, 9]`` latents of the Gaussians, computed once:
@@ -553,38 +562,45 @@ class Query:
 
     # -------------------------------------------------------- 3D
 
-    def gaussians(self) -> Selection | list[Selection]:
+    def gaussians(
+        self, level: int | None = None, threshold: float = MASK_THRESHOLD
+    ) -> Selection | list[Selection]:
         """The Gaussians that match: each Gaussian's three latents decoded exactly (through the field's
         codebook when it has one) and scored.
 
-        As the 2D mask: the level with the highest relevancy is chosen, the relevancy at that level is
-        min-max stretched over the Gaussians (:func:`querying.relevancy.normalize_map`) and thresholded
-        at :data:`querying.relevancy.MASK_THRESHOLD`. When no Gaussian's relevancy exceeds
-        :data:`MATCH_RELEVANCY` the selection is empty.
+        As the 2D mask: the level with the highest relevancy is chosen (or ``level``), the relevancy at
+        that level is min-max stretched over the Gaussians (:func:`querying.relevancy.normalize_map`)
+        and thresholded at ``threshold``. When no Gaussian's relevancy at that level exceeds
+        :data:`MATCH_RELEVANCY` the selection is empty. The Gaussians' relevancy is computed once per
+        query; other levels and thresholds reuse it.
+
+        Args:
+            level: 0 subpart, 1 part, 2 whole; default the level where the phrase scores highest.
+            threshold: on the stretched relevancy, in [0, 1] (LangSplat's mask threshold by default).
 
         Returns:
             A :class:`Selection` (a list of them, one per phrase, for a query of several phrases).
         """
-        shared = self._shared
-        if shared.selections is None:
-            with torch.no_grad():
-                latents = shared.field.gaussian_latents()  # [N, 3, 3]
-                rel = shared.exact_relevancy(latents.transpose(0, 1))  # [Q, 3, N]
-                n = rel.shape[-1]
-                if n == 0:
-                    level = torch.zeros(rel.shape[0], dtype=torch.long)
-                else:
-                    level = rel.amax(dim=-1).argmax(dim=-1)
-                chosen = rel.gather(1, level[:, None, None].expand(-1, 1, n))  # [Q, 1, N]: a 1 x N map
-                selected = (normalize_map(chosen) > MASK_THRESHOLD)[:, 0] if n else chosen[:, 0].bool()
-                selections = []
-                for q in range(rel.shape[0]):
-                    best = float(chosen[q].max()) if n else 0.0
-                    idx = torch.nonzero(selected[q] & (best > MATCH_RELEVANCY)).flatten()
-                    selections.append(Selection(idx, chosen[q, 0, idx], int(level[q]), best))
-            shared.selections = selections
-        chosen = [shared.selections[i] for i in self._rows]
-        return chosen[0] if self._single else chosen
+        if level is not None and level not in range(N_LEVELS):
+            raise ValueError(f"level must be 0 (subpart), 1 (part) or 2 (whole), got {level!r}")
+        if not 0.0 <= threshold <= 1.0:
+            raise ValueError(f"threshold must be in [0, 1], got {threshold!r}")
+        rel = self._shared.gaussian_relevancy()[self._rows]  # [Q, 3, N]
+        n = rel.shape[-1]
+        if level is not None:
+            levels = torch.full((rel.shape[0],), level, dtype=torch.long)
+        elif n == 0:
+            levels = torch.zeros(rel.shape[0], dtype=torch.long)
+        else:
+            levels = rel.amax(dim=-1).argmax(dim=-1)
+        chosen = rel.gather(1, levels[:, None, None].expand(-1, 1, n))  # [Q, 1, N]: a 1 x N map
+        selected = (normalize_map(chosen) > threshold)[:, 0] if n else chosen[:, 0].bool()
+        selections = []
+        for q in range(rel.shape[0]):
+            best = float(chosen[q].max()) if n else 0.0
+            idx = torch.nonzero(selected[q] & (best > MATCH_RELEVANCY)).flatten()
+            selections.append(Selection(idx, chosen[q, 0, idx], int(levels[q]), best))
+        return selections[0] if self._single else selections
 
     def selected_indices(self) -> Tensor:
         """``[K]`` long, the union of the phrases' selections, ascending."""

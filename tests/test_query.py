@@ -273,6 +273,26 @@ def test_gaussians_returns_indices_and_scores(field) -> None:
     assert torch.equal(many[0].indices, idx)
 
 
+def test_gaussians_at_a_given_level_and_threshold(field) -> None:
+    q = field.query("sofa")
+    auto = q.gaussians()
+    assert torch.equal(q.gaussians(auto.level, 0.4).indices, auto.indices)  # the defaults, spelled out
+    rel = q._shared.gaussian_relevancy()[0]  # [3, N]: computed once, read by every level and threshold
+    for level in range(3):
+        for threshold in (0.0, 0.4, 0.9):
+            sel = q.gaussians(level=level, threshold=threshold)
+            assert sel.level == level and sel.best == pytest.approx(float(rel[level].max()))
+            chosen = rel[level]
+            stretched = ((chosen - chosen.min()) / (chosen.max() - chosen.min() + 1e-9) * 2 - 1).clamp(0, 1)
+            expected = torch.nonzero((stretched > threshold) & (sel.best > MATCH_RELEVANCY)).flatten()
+            assert torch.equal(sel.indices, expected)
+            assert torch.allclose(sel.scores, chosen[expected])
+        assert set(q.gaussians(level, 0.9).indices.tolist()) <= set(q.gaussians(level, 0.4).indices.tolist())
+    for bad in ({"level": 3}, {"level": -1}, {"threshold": 1.5}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            q.gaussians(**bad)
+
+
 def test_export_ply_round_trips_through_the_reader(field, tmp_path) -> None:
     q = field.query("sofa")
     idx = q.gaussians().indices
