@@ -1,4 +1,5 @@
-"""``langfield demo``: the built-in scene generated, trained on 3 views, scored and queried."""
+"""``langfield demo``: the built-in scene generated, trained on 3 views, scored, queried, filmed and shown
+in the viewer."""
 
 from __future__ import annotations
 
@@ -20,20 +21,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
     scene_dir = make_room(
         out / "scene", seed=args.seed, layout=args.layout, width=args.width, height=args.height
     )
-    print(f"[1/5] built-in scene written to {scene_dir}")
+    print(f"[1/6] built-in scene written to {scene_dir}")
     scene = load_scene(scene_dir)
     length = training_length(args.iterations, len(scene.names("train")))["iterations"]
-    print(f"[2/5] training on {len(scene.names('train'))} views ({length} iterations)")
+    print(f"[2/6] training on {len(scene.names('train'))} views ({length} iterations)")
     field = train(scene, TrainConfig(iterations=args.iterations, seed=args.seed))
     field.meta["scene_args"] = {"resolution": 1.0, "views": None, "n_views": None}
     field.save(out / "field", overwrite=True)  # the demo's folder is its own: a rerun replaces it
     pictures = out / "renders"
-    print(f"[3/5] rendering and scoring {len(scene.names('test'))} novel views to {pictures}")
+    print(f"[3/6] rendering and scoring {len(scene.names('test'))} novel views to {pictures}")
     report = evaluate(field, scene, save_dir=pictures)
     md = write_report(report, out / "report.json", pictures)
-    print(f"[4/5] report: {out / 'report.json'} and {md}")
+    print(f"[4/6] report: {out / 'report.json'} and {md}")
     queries = out / "queries"
-    print(f"[5/5] text queries on the novel views ('couch' is a synonym the table knows) -> {queries}")
+    print(f"[5/6] text queries on the novel views ('couch' is a synonym the table knows) -> {queries}")
     from langfield.cli.query import cmd_query
 
     query_args = argparse.Namespace(
@@ -46,16 +47,52 @@ def cmd_demo(args: argparse.Namespace) -> int:
         exact=False,
     )
     cmd_query(query_args)
+    pictures_of_viewer = _look(field, scene, out)
     miou = report.get("mIoU")
     query_txt = f", novel-view mIoU {miou:.3f}, mAcc {report['mAcc']:.3f}" if miou is not None else ""
     print(
         summary_line(field, report["PSNR"]) + f", SSIM {report['SSIM']:.3f}{query_txt}; "
         f"demo took {time.perf_counter() - t0:.0f} s; pictures in {pictures} and {queries}"
     )
+    print(f"{pictures_of_viewer}\nsee it and ask it in a browser: langfield view {out / 'field'}")
     return 0
 
 
+def _look(field, scene, out: Path) -> str:
+    """Step 6: an orbit video with the heat map of 'sofa' (and one frame of it as a PNG), and a screenshot
+    of the viewer answering 'sofa' where a browser can be driven; what was written, in words."""
+    import cv2
+
+    from langfield.viewer.browser import browser_missing, screenshot_viewer
+    from langfield.viewer.paths import orbit
+    from langfield.viewer.server import Viewer
+    from langfield.viewer.video import path_frames, read_video, write_video
+
+    video = out / "orbit_sofa.mp4"
+    print(f"[6/6] an orbit video with the heat map of 'sofa' ({video}) and the viewer")
+    cameras = scene.cameras("all")
+    query = field.query("sofa", scene=scene)
+    path = orbit(cameras, DEMO_FRAMES, fallback=field.meta.bounds.mean(axis=0))
+    write_video(video, path_frames(field, path, query), fps=30.0)
+    frame = read_video(video)[DEMO_FRAMES // 8]  # half-way out on the swing
+    cv2.imwrite(str(out / "orbit_frame.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    written = f"video {video}, one frame of it {out / 'orbit_frame.png'}"
+    reason = browser_missing()
+    if reason is not None:
+        return f"{written}; no screenshot of the viewer: {reason}"
+    viewer = Viewer(field, scene, port=0, save=out / "selections")
+    try:
+        answered = lambda: viewer.answer.phrase == "sofa"  # noqa: E731
+        shot = screenshot_viewer(viewer.url, out / "viewer.jpg", "sofa", answered)
+    except Exception as err:  # a picture for the README: never a reason to fail the demo
+        return f"{written}; no screenshot of the viewer: {err}"
+    finally:
+        viewer.close()
+    return f"{written}, the viewer answering 'sofa' {shot}"
+
+
 DEMO_PHRASES = ("sofa", "couch", "lamp", "mug")
+DEMO_FRAMES = 120
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -17,6 +17,9 @@ import torch
 
 from langfield import LanguageField, load_scene
 from langfield.cli import main
+from langfield.cli.demo import DEMO_FRAMES
+from langfield.viewer.browser import browser_missing
+from langfield.viewer.video import read_video
 
 W, H = 64, 48
 REPORT_KEYS = {
@@ -300,6 +303,11 @@ def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
         rgb = cv2.imread(str(out / "renders" / f"{name}_rgb.png"))
         assert rgb is not None and rgb.shape == (36, 48, 3)
         assert (out / "renders" / f"{name}_depth.png").is_file()
+    frames = read_video(out / "orbit_sofa.mp4")
+    assert len(frames) == DEMO_FRAMES and frames[0].shape == (36, 96, 3)  # the render, the heat map
+    assert cv2.imread(str(out / "orbit_frame.png")).shape == (36, 96, 3)
+    assert (out / "viewer.jpg").is_file() == (browser_missing() is None), printed
+    assert f"langfield view {out / 'field'}" in printed
 
 
 # ---------------------------------------------------------------- bad input
@@ -368,7 +376,7 @@ def test_console_script_smoke() -> None:
     exe = shutil.which("langfield")
     done = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0
-    for command in ("train", "render", "eval", "bench", "demo"):
+    for command in ("train", "render", "eval", "bench", "demo", "query", "view"):
         assert command in done.stdout
 
 
