@@ -95,8 +95,8 @@ def wait_for(condition: Callable[[], bool], timeout: float = 30.0, step: float =
 
 
 def phrase_box(page):
-    """The panel's phrase box (viser's first visible text input)."""
-    return page.locator("input.mantine-TextInput-input:visible").first
+    """The panel's phrase box: the first input after the label "Phrase" (viser's labels name no input)."""
+    return page.locator("xpath=//*[normalize-space(text())='Phrase']/following::input[1]")
 
 
 def screenshot_viewer(url: str, path: str | Path, phrase: str | None = None, answered=None) -> Path:
