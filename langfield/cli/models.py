@@ -72,9 +72,9 @@ def add_parsers(subparsers: Any) -> None:
     k.set_defaults(func=cmd_export)
 
     p = subparsers.add_parser(
-        "preprocess", help="write a scene's language_features/ and depths/ with exported models"
+        "preprocess", help="write scenes' language_features/ and depths/ with exported models"
     )
-    p.add_argument("scene", help="scene folder")
+    p.add_argument("scenes", nargs="+", metavar="scene", help="scene folder(s)")
     p.add_argument("--models", default=None, help="folder holding clip/, sam/ and depth/ exports")
     p.add_argument("--clip", default=None, help="CLIP model folder (default MODELS/clip)")
     p.add_argument("--sam", default=None, help="SAM model folder (default MODELS/sam)")
@@ -86,6 +86,12 @@ def add_parsers(subparsers: Any) -> None:
         help="SAM (default) or the classical graph segmenter, which needs no weights",
     )
     p.add_argument("--overwrite", action="store_true", help="recompute views whose files are already valid")
+    p.add_argument(
+        "--address",
+        default=None,
+        help="share the views out to Ray workers (langfield[cluster]): local (a Ray started here), auto "
+        "(the cluster this machine is part of) or ray://HOST:10001 (default: no Ray, one view at a time)",
+    )
     p.set_defaults(func=cmd_preprocess)
 
 
@@ -133,22 +139,42 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_preprocess(args: argparse.Namespace) -> int:
-    """``langfield preprocess SCENE``: language features and depth priors of every view."""
+    """``langfield preprocess SCENE...``: language features and depth priors of every view."""
+    from functools import partial
+
     from langfield.io.preprocess import load_models, preprocess_scene
 
+    if args.address is not None:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            from langfield.io.preprocess_ray import INSTALL_HINT
+
+            return _fail(args, INSTALL_HINT)
+    for scene in args.scenes:
+        if not Path(scene).is_dir():
+            raise ValueError(f"{scene}: no such scene folder")
+    choice = {"clip": args.clip, "sam": args.sam, "depth": args.depth, "segmenter": args.segmenter}
     try:
-        models = load_models(
-            args.models, clip=args.clip, sam=args.sam, depth=args.depth, segmenter=args.segmenter
-        )
+        models = load_models(args.models, **choice)
     except ImportError as err:
         return _fail(args, err)
     used = ", ".join(f"{role} {src}" for role, src in models.sources.items())
     no_depth = "" if models.depth is not None else "; no depth model, so no depths/"
     print(f"models: {used}{no_depth}", flush=True)
-    report = preprocess_scene(
-        args.scene, models.segmenter, models.encoder, models.depth, overwrite=args.overwrite
-    )
-    print(report.summary())
+    if args.address is None:
+        reports = [
+            preprocess_scene(s, models.segmenter, models.encoder, models.depth, overwrite=args.overwrite)
+            for s in args.scenes
+        ]
+    else:
+        from langfield.io.preprocess_ray import preprocess_on_ray
+
+        address = None if args.address == "local" else args.address
+        make = partial(load_models, args.models, **choice)
+        reports = preprocess_on_ray(args.scenes, models, make, address=address, overwrite=args.overwrite)
+    for report in reports:
+        print(report.summary())
     return 0
 
 

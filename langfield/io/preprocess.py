@@ -244,49 +244,110 @@ def preprocess_scene(
             scene that disagrees with the depth model, or a model output of the wrong shape.
         SceneError: an unreadable scene (names the file).
     """
+    t_start = time.perf_counter()
+    scene, report, todo = plan_scene(scene_dir, segmenter, encoder, depth, overwrite)
+    seconds = {"segmenter": 0.0, "encoder": 0.0, "depth": 0.0}
+    with tqdm(total=len(report.views), desc="preprocess", unit="view", disable=not progress) as bar:
+        for name in report.views:
+            features, depth_map = todo.get(name, (False, False))
+            done = preprocess_view(scene, name, segmenter, encoder, depth, features, depth_map)
+            add_view(report, name, done, seconds)
+            bar.set_postfix_str(name)
+            bar.update()
+    finish_report(report, seconds, t_start)
+    return report
+
+
+@dataclass
+class ViewDone:
+    """What :func:`preprocess_view` wrote for one view: masks kept (None: no features written), whether
+    a depth map was written, and the seconds each model role took."""
+
+    num_masks: int | None
+    depth: bool
+    seconds: dict[str, float]
+
+
+def plan_scene(
+    scene_dir: str | Path,
+    segmenter: Segmenter | None,
+    encoder: ImageTextEncoder | None,
+    depth: DepthEstimator | None,
+    overwrite: bool,
+) -> tuple[Scene, PreprocessReport, dict[str, tuple[bool, bool]]]:
+    """Checks the models and the scene, records ``depth_kind`` and finds what each view needs: (the
+    scene, an empty report, {view: (features to compute, depth to compute)} for the views not done)."""
     if (segmenter is None) != (encoder is None):
         raise PreprocessError("preprocess_scene: language features need both a segmenter and an encoder")
     if segmenter is None and depth is None:
         raise PreprocessError("preprocess_scene: no model given (segmenter + encoder, and/or depth)")
-    t_start = time.perf_counter()
     root = Path(scene_dir)
     scene = load_scene(root, views=[0])  # any split will do: every view is preprocessed
     names = scene.names("all")
     report = PreprocessReport(root, names)
     roles = {"segmenter": segmenter, "encoder": encoder, "depth": depth}
     report.model_names = {role: type(m).__name__ for role, m in roles.items() if m is not None}
-    timed_segmenter = None if segmenter is None else _TimedSegmenter(segmenter)
-    timed_encoder = None if encoder is None else _TimedEncoder(encoder)
-    depth_seconds = 0.0
     depth_todo = set() if depth is None else {n for n in names if overwrite or not _depth_done(scene, n)}
     if depth is not None:
         report.depth_kind, report.depth_kind_recorded = _record_depth_kind(scene, depth.kind, depth_todo)
+    todo = {}
+    for name in names:
+        features = encoder is not None and (overwrite or not _features_done(scene, name, encoder.dim))
+        if features or name in depth_todo:
+            todo[name] = (features, name in depth_todo)
+    return scene, report, todo
 
-    with tqdm(total=len(names), desc="preprocess", unit="view", disable=not progress) as bar:
-        for name in names:
-            if timed_segmenter is not None and (overwrite or not _features_done(scene, name, encoder.dim)):
-                cache = build_feature_cache(scene.image(name), timed_segmenter, timed_encoder)
-                write_feature_cache(root / FEATURES_DIR, name, cache)
-                report.features_written.append(name)
-                report.num_masks += cache.num_masks
-            if name in depth_todo:
-                t0 = time.perf_counter()
-                prior = depth.estimate(scene.stored_image(name))
-                depth_seconds += time.perf_counter() - t0
-                _write_depth(scene, name, prior, type(depth).__name__)
-                report.depths_written.append(name)
-            scene.forget_image(name)
-            bar.set_postfix_str(name)
-            bar.update()
 
+def preprocess_view(
+    scene: Scene,
+    name: str,
+    segmenter: Segmenter | None,
+    encoder: ImageTextEncoder | None,
+    depth: DepthEstimator | None,
+    features: bool,
+    depth_map: bool,
+) -> ViewDone:
+    """Computes and writes one view's feature cache (``features``) and depth prior (``depth_map``)."""
+    seconds = {}
+    num_masks = None
+    if features:
+        timed_segmenter, timed_encoder = _TimedSegmenter(segmenter), _TimedEncoder(encoder)
+        cache = build_feature_cache(scene.image(name), timed_segmenter, timed_encoder)
+        write_feature_cache(scene.root / FEATURES_DIR, name, cache)
+        num_masks = cache.num_masks
+        seconds.update(segmenter=timed_segmenter.seconds, encoder=timed_encoder.seconds)
+    if depth_map:
+        t0 = time.perf_counter()
+        prior = depth.estimate(scene.stored_image(name))
+        seconds["depth"] = time.perf_counter() - t0
+        _write_depth(scene, name, prior, type(depth).__name__)
+    scene.forget_image(name)
+    return ViewDone(num_masks, depth_map, seconds)
+
+
+def add_view(report: PreprocessReport, name: str, done: ViewDone, seconds: dict[str, float]) -> None:
+    """Adds one view's :class:`ViewDone` to the report and the per-role seconds."""
+    if done.num_masks is not None:
+        report.features_written.append(name)
+        report.num_masks += done.num_masks
+    if done.depth:
+        report.depths_written.append(name)
+    for role, t in done.seconds.items():
+        seconds[role] += t
+
+
+def finish_report(report: PreprocessReport, seconds: dict[str, float], t_start: float) -> None:
+    """Seconds per image of each role that ran, in view order, and the wall time."""
+    order = {n: i for i, n in enumerate(report.views)}
+    report.features_written.sort(key=order.get)
+    report.depths_written.sort(key=order.get)
     if report.features_written:
         n = len(report.features_written)
-        report.seconds_per_image["segmenter"] = timed_segmenter.seconds / n
-        report.seconds_per_image["encoder"] = timed_encoder.seconds / n
+        report.seconds_per_image["segmenter"] = seconds["segmenter"] / n
+        report.seconds_per_image["encoder"] = seconds["encoder"] / n
     if report.depths_written:
-        report.seconds_per_image["depth"] = depth_seconds / len(report.depths_written)
+        report.seconds_per_image["depth"] = seconds["depth"] / len(report.depths_written)
     report.seconds = time.perf_counter() - t_start
-    return report
 
 
 class _TimedSegmenter:

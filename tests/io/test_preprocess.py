@@ -250,7 +250,8 @@ def test_cli_parses_every_flag() -> None:
     args = parser.parse_args(
         ["preprocess", "s", "--models", "m", "--clip", "c", "--sam", "a", "--depth", "d", "--overwrite"]
     )
-    assert (args.scene, args.models, args.clip, args.sam, args.depth) == ("s", "m", "c", "a", "d")
+    assert (args.scenes, args.models, args.clip, args.sam, args.depth) == (["s"], "m", "c", "a", "d")
+    assert args.address is None
     assert args.overwrite and args.segmenter == "sam" and args.func is cli_models.cmd_preprocess
     args = parser.parse_args(
         ["export", "depth", "--checkpoint", "f", "--input-size", "518", "686", "--out", "o"]
