@@ -18,7 +18,7 @@ $(BIN)/python:
 # compiled here, once, so that the first `langfield train` does not stop for them.
 $(VENV)/.installed: $(BIN)/python pyproject.toml $(LOCK)
 	$(BIN)/pip install -c $(LOCK) "$(TORCH)"
-	$(BIN)/pip install -c $(LOCK) -e ".[test]"
+	$(BIN)/pip install -c $(LOCK) -e ".[test,cluster]"
 	$(BIN)/python -c "from langfield.cli.warmup import main; main()"
 	touch $@
 
@@ -64,7 +64,7 @@ demo: install
 # Refreshes both locks from the newest releases the ranges allow, in throwaway venvs; run the suite
 # (`make test test-export`) before committing the new locks.
 lock:
-	bash scripts/lock.sh "$(PYTHON)" "$(TORCH)" "[test]" $(LOCK)
+	bash scripts/lock.sh "$(PYTHON)" "$(TORCH)" "[test,cluster]" $(LOCK)
 	bash scripts/lock.sh "$(PYTHON)" "$(EXPORT_TORCH)" "[export,test]" $(EXPORT_LOCK)
 
 # The newest releases, unlocked (not in CI): tells whether the next `make lock` will pass.
@@ -73,7 +73,7 @@ test-latest: system
 	rm -rf $(LATEST_VENV)
 	$(PYTHON) -m venv $(LATEST_VENV)
 	$(LATEST_VENV)/bin/pip install "$(TORCH)"
-	$(LATEST_VENV)/bin/pip install --upgrade -e ".[test]"
+	$(LATEST_VENV)/bin/pip install --upgrade -e ".[test,cluster]"
 	$(LATEST_VENV)/bin/pip freeze --exclude-editable
 	$(LATEST_VENV)/bin/ruff check .
 	$(LATEST_VENV)/bin/python -m pytest -q
