@@ -109,3 +109,20 @@ def tiny_sam(size: int, window_size: int, seed: int):
         pixel_mean=[123.675, 116.28, 103.53],
         pixel_std=[58.395, 57.12, 57.375],
     ).eval()
+
+
+def bare_room(path, width: int, height: int, seed: int = 0, n_test: int = 2):
+    """The built-in room at ``path`` without what preprocessing writes: no language features, no depth
+    priors, no ``depth_kind``."""
+    import json
+    import shutil
+
+    from langfield.synthetic import make_room
+
+    root = make_room(path, seed=seed, width=width, height=height, n_test=n_test)
+    shutil.rmtree(root / "language_features")
+    shutil.rmtree(root / "depths")
+    meta = json.loads((root / "transforms.json").read_text())
+    del meta["depth_kind"]
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root

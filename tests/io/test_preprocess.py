@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_models_cli
+from conftest import bare_room, run_models_cli
 
 from encoders.cache import read_feature_cache
 from encoders.manifest import ManifestError
@@ -20,21 +20,14 @@ from encoders.stubs import StubDepthEstimator, StubImageTextEncoder, StubSegment
 from langfield.cli import models as cli_models
 from langfield.io.preprocess import PreprocessError, load_models, preprocess_scene
 from langfield.io.scene import load_scene
-from langfield.synthetic import make_room
 
 W, H = 48, 36
 
 
-@pytest.fixture(scope="module")
-def bare_room(tmp_path_factory) -> Path:
+@pytest.fixture(scope="module", name="bare_room")
+def bare_room_fixture(tmp_path_factory) -> Path:
     """The synthetic room without its language features, depth priors and depth_kind."""
-    root = make_room(tmp_path_factory.mktemp("room"), seed=0, width=W, height=H, n_test=2)
-    shutil.rmtree(root / "language_features")
-    shutil.rmtree(root / "depths")
-    meta = json.loads((root / "transforms.json").read_text())
-    del meta["depth_kind"]
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root
+    return bare_room(tmp_path_factory.mktemp("room"), W, H)
 
 
 @pytest.fixture

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import bare_room
 
 from encoders.stubs import StubDepthEstimator, StubImageTextEncoder, StubSegmenter
 from langfield.io.preprocess import Models, preprocess_scene
-from langfield.synthetic import make_room
 
 pytest.importorskip("ray", reason="needs the cluster extra (pip install -e '.[cluster]')")
 
@@ -32,16 +32,6 @@ def stub_models() -> Models:
     return MAKE_STUBS()
 
 
-def _bare_room(path: Path, seed: int) -> Path:
-    root = make_room(path, seed=seed, width=W, height=H, n_test=1)
-    shutil.rmtree(root / "language_features")
-    shutil.rmtree(root / "depths")
-    meta = json.loads((root / "transforms.json").read_text())
-    del meta["depth_kind"]
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root
-
-
 def _outputs(root: Path) -> dict[str, np.ndarray]:
     files = sorted((root / "language_features").glob("*.npy")) + sorted((root / "depths").glob("*.npy"))
     return {f"{f.parent.name}/{f.name}": np.load(f) for f in files}
@@ -49,7 +39,7 @@ def _outputs(root: Path) -> dict[str, np.ndarray]:
 
 @pytest.mark.slow
 def test_ray_preprocessing_writes_what_a_local_run_writes(tmp_path) -> None:
-    scenes = [_bare_room(tmp_path / f"room{k}", seed=k) for k in range(2)]
+    scenes = [bare_room(tmp_path / f"room{k}", W, H, seed=k, n_test=1) for k in range(2)]
     local = Path(shutil.copytree(scenes[0], tmp_path / "local"))
     m = stub_models()
     preprocess_scene(local, m.segmenter, m.encoder, m.depth, progress=False)
