@@ -16,6 +16,8 @@ installed with it.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import threading
 import time
 from dataclasses import dataclass, replace
@@ -97,17 +99,18 @@ class Viewer:
         self.text_encoder = text_encoder
         self.save = Path(save)
         self.query: Query | None = None
-        self.answer = Answer("Type a phrase (e.g. a thing in the scene) and press Enter.")
+        self.answer = Answer("Type a phrase (a thing in the scene): it is asked as you type.")
         self._lock = threading.RLock()
         self._splat_data = self._splat_arrays()
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: `langfield view` says where
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
         cameras = scene.cameras("all") if scene is not None else []
         train = set(scene.names("train")) if scene is not None else set()
         self._place_scene(cameras, train)
         self.splats = self.server.scene.add_gaussian_splats("/field", *self._splat_data)
-        self._build_panel()
-        self._heat = _LatestOnly(self._draw_heat)
+        self._heat = _LatestOnly(self._draw_heat)  # before the panel, whose callbacks use them
         self._asker = _LatestOnly(self.ask)
+        self._build_panel()
         self.server.on_client_connect(self._on_connect)
 
     # ------------------------------------------------------------------ setup
@@ -206,7 +209,7 @@ class Viewer:
             if self.query is None:
                 self._show_selection(None)
                 self._redraw_heat()
-                return self._say(Answer("Type a phrase (e.g. a thing in the scene) and press Enter."))
+                return self._say(Answer("Type a phrase (a thing in the scene): it is asked as you type."))
             phrase = self.query.phrases[0]
             sel = self.query.gaussians(self._level(), float(self.threshold_box.value))
             indices = sel.indices.numpy()
