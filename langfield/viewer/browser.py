@@ -104,7 +104,7 @@ def screenshot_viewer(url: str, path: str | Path, phrase: str | None = None, ans
     typing it and once ``answered()`` holds (the viewer has shown the answer)."""
     path = Path(path)
     with open_page(url) as page:
-        page.get_by_text("Type a phrase").wait_for(timeout=30_000)
+        phrase_box(page).wait_for(timeout=30_000)
         if not wait_for(lambda: float(scene_region(grab(page)).std(axis=(0, 1)).mean()) > 10.0):
             raise RuntimeError("the viewer's page showed no splats")
         if phrase is not None:

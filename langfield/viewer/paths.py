@@ -25,9 +25,10 @@ from langfield.camera import Camera
 # Smallest eigenvalue (per camera) of sum(I - d d^T) below which the optical axes count as parallel:
 # about the axes' spread of 13 degrees.
 PARALLEL_AXES = 0.05
-# A forward-facing orbit swings over the cameras' arc times this, and at least MIN_SWING radians.
+# A forward-facing orbit swings over the cameras' arc times this, and at least MIN_SWING radians each
+# way (LLFF fern's cameras span 11 degrees about its bounds' centre: a swing of 8 each way).
 SWING_WIDEN = 1.5
-MIN_SWING = np.deg2rad(20.0)
+MIN_SWING = np.deg2rad(5.0)
 
 
 def look_target(cameras: Sequence[Camera], fallback: np.ndarray | None = None) -> np.ndarray:

@@ -49,6 +49,8 @@ DIM_COLOUR = 0.3  # unselected Gaussians, dimmed: colour and opacity scaled by t
 FRUSTUM_SIZE = 0.01  # frustum depth, of the bounds' diagonal
 FRUSTUM_LINE = 2.0  # pixels
 PULL_BACK = 1.6  # the first view: this much farther than the cameras from what they look at
+PROMPT = "Type a phrase (a thing in the scene): it is asked as you type."
+NO_LANGUAGE = "This field has no language features: it shows the splats and cameras, and answers no phrase."
 TRAIN_COLOUR, TEST_COLOUR = (230, 120, 20), (40, 110, 230)
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0])
 
@@ -99,7 +101,7 @@ class Viewer:
         self.text_encoder = text_encoder
         self.save = Path(save)
         self.query: Query | None = None
-        self.answer = Answer("Type a phrase (a thing in the scene): it is asked as you type.")
+        self.answer = Answer(PROMPT if field.has_language else NO_LANGUAGE)
         self._lock = threading.RLock()
         self._splat_data = self._splat_arrays()
         with contextlib.redirect_stdout(io.StringIO()):  # viser's banner: `langfield view` says where
@@ -173,6 +175,10 @@ class Viewer:
         for box in (self.level_box, self.threshold_box, self.hide_box):
             box.on_update(lambda _: self.refresh())
         self.export_button.on_click(lambda _: self._say(self.export_selection()))
+        if not self.field.has_language:  # nothing to ask: the controls are shown, greyed out
+            for handle in (self.phrase_box, self.level_box, self.threshold_box, self.hide_box):
+                handle.disabled = True
+            self.export_button.disabled = True
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
         client.camera.on_update(lambda cam: self._heat.request(cam))
@@ -187,7 +193,7 @@ class Viewer:
             if not phrase:
                 self.query = None
             elif not self.field.has_language:
-                return self._say(Answer("This field has no language features: it cannot be queried."))
+                return self._say(Answer(NO_LANGUAGE))
             else:
                 try:
                     self.query = self.field.query(phrase, self.text_encoder)
@@ -209,7 +215,7 @@ class Viewer:
             if self.query is None:
                 self._show_selection(None)
                 self._redraw_heat()
-                return self._say(Answer("Type a phrase (a thing in the scene): it is asked as you type."))
+                return self._say(Answer(PROMPT if self.field.has_language else NO_LANGUAGE))
             phrase = self.query.phrases[0]
             sel = self.query.gaussians(self._level(), float(self.threshold_box.value))
             indices = sel.indices.numpy()

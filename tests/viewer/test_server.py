@@ -115,3 +115,17 @@ def test_heat_view_is_the_render_or_its_heat_map(viewer) -> None:
     heat = viewer.heat_view(cam)
     assert heat.shape == (H, W, 3) and np.abs(heat.astype(int) - plain.astype(int)).mean() > 10.0
     viewer.ask("")
+
+
+def test_a_field_without_language_is_shown_and_asks_nothing(viewer_field_dir) -> None:
+    field = LanguageField.load(viewer_field_dir)
+    field.language = None  # as a field trained with --no-language
+    assert not field.has_language
+    v = Viewer(field, None, port=0)
+    try:
+        assert "no language" in v.status.content and v.phrase_box.disabled and v.export_button.disabled
+        answer = v.ask("sofa")
+        assert "no language" in answer.text and answer.indices is None
+        assert len(v.splats.centers) == field.num_gaussians
+    finally:
+        v.close()
