@@ -316,6 +316,7 @@ def test_meta_is_typed_and_written_back_key_for_key(field, saved) -> None:
     loaded = LanguageField.load(saved)
     assert isinstance(field.meta, FieldMeta) and isinstance(loaded.meta, FieldMeta)
     assert np.array_equal(loaded.meta.bounds, np.asarray(field.meta["bounds"], dtype=np.float64))
+    assert np.allclose(loaded.meta.centre, loaded.meta.bounds.mean(axis=0))  # the grid's centre
     assert loaded.meta.backend == field.meta["backend"]
     assert loaded.meta.iterations == field.meta["iterations"] and loaded.meta.train_seconds > 0
     assert loaded.meta.tensors_sha256 == json.loads((saved / "field.json").read_text())["tensors_sha256"]

@@ -72,7 +72,7 @@ def _look(field, scene, out: Path) -> str:
     print(f"[6/6] an orbit video with the heat map of 'sofa' ({video}) and the viewer")
     cameras = scene.cameras("all")
     query = field.query("sofa", scene=scene)
-    path = orbit(cameras, DEMO_FRAMES, fallback=field.meta.bounds.mean(axis=0))
+    path = orbit(cameras, DEMO_FRAMES, fallback=field.meta.centre)
     write_video(video, path_frames(field, path, query), fps=30.0)
     frame = read_video(video)[DEMO_FRAMES // 8]  # half-way out on the swing
     cv2.imwrite(str(out / "orbit_frame.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))

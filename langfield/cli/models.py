@@ -145,12 +145,12 @@ def cmd_preprocess(args: argparse.Namespace) -> int:
     from langfield.io.preprocess import load_models, preprocess_scene
 
     if args.address is not None:
-        try:
-            import ray  # noqa: F401
-        except ImportError:
-            from langfield.io.preprocess_ray import INSTALL_HINT
+        from langfield.cluster import require_ray
 
-            return _fail(args, INSTALL_HINT)
+        try:
+            require_ray()
+        except RuntimeError as err:
+            return _fail(args, err)
     for scene in args.scenes:
         if not Path(scene).is_dir():
             raise ValueError(f"{scene}: no such scene folder")

@@ -58,8 +58,7 @@ def _render_video(args: argparse.Namespace) -> int:
             print(f"langfield render: error: {err}", file=sys.stderr)
             return 2
     cameras = scene.cameras("all")
-    centre = field.meta.bounds.mean(axis=0) if field.meta.get("bounds") is not None else None
-    path = PATHS[args.path](cameras, args.frames, fallback=centre)
+    path = PATHS[args.path](cameras, args.frames, fallback=field.meta.centre)
     t0 = time.perf_counter()
     count = write_video(video, path_frames(field, path, query), args.fps)
     dt = time.perf_counter() - t0

@@ -8,7 +8,8 @@ import sys
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from langfield.atomic import check_writable_folder
-    from langfield.eval.sweep import load_spec, require_ray, run_sweep
+    from langfield.cluster import require_ray
+    from langfield.eval.sweep import load_spec, run_sweep
 
     try:
         require_ray()

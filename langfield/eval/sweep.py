@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from langfield.atomic import atomic_path
+from langfield.cluster import ray_session
 from langfield.eval.ablate import CASES, run_case
 from langfield.training.trainer import TrainConfig, check_config
 
@@ -58,7 +59,6 @@ COLUMNS = (
     "mIoU", "mAcc", "PSNR", "SSIM", "masked_PSNR", "depth_abs_rel", "floaters", "depth_agreement",
     "num_gaussians", "train_seconds", "ms_per_iteration",
 )  # fmt: skip
-INSTALL_HINT = "Ray is not installed: pip install 'langfield[cluster]' (or pip install -e '.[cluster]')"
 
 
 class SpecError(ValueError):
@@ -85,15 +85,6 @@ class Spec:
     path: Path
     runs: list[Run]
     cpus_per_run: int
-
-
-def require_ray():
-    """The ray module, or a RuntimeError saying how to install it."""
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError(INSTALL_HINT) from None
-    return ray
 
 
 def _case_settings(raw: dict, where: str) -> dict[str, dict]:
@@ -227,16 +218,12 @@ def run_sweep(
     say: Callable[[str], None] = print,
 ) -> dict:
     """Runs the spec's runs not yet in ``out`` on Ray (see the module's docstring); the summary."""
-    ray = require_ray()
     out = Path(out)
     results = _done(spec, out)
     todo = [r for r in spec.runs if r.key not in results]
     say(f"sweep {spec.path}: {len(spec.runs)} runs, {len(results)} already done, {len(todo)} to run")
     (out / "runs").mkdir(parents=True, exist_ok=True)
-    started = bool(todo) and not ray.is_initialized()
-    if started:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
-    try:
+    with ray_session(address, needed=bool(todo)) as ray:
         task = ray.remote(_with_threads(runner, spec.cpus_per_run)).options(
             num_cpus=spec.cpus_per_run, max_retries=0
         )
@@ -256,9 +243,6 @@ def run_sweep(
             summary = write_summary(spec, out, results)
             said = result.get("error") or f"PSNR {result['row']['PSNR']:.2f} dB"
             say(f"[{len(summary['finished'])}/{len(spec.runs)}] {run.key}: {said}")
-    finally:
-        if started:
-            ray.shutdown()
     return write_summary(spec, out, results)
 
 

@@ -55,6 +55,12 @@ class FieldMeta(dict):
         return np.asarray(self["bounds"], dtype=np.float64)
 
     @property
+    def centre(self) -> np.ndarray:
+        """``[3]`` float64, the centre of the scene box: the colour grid's centre, which every field
+        records (the bounds' centre; the bounds themselves are optional in field.json)."""
+        return np.asarray(self["color_field"]["center"], dtype=np.float64)
+
+    @property
     def scene(self) -> str | None:
         """The scene folder the field was trained on, if recorded."""
         return self.get("scene") or None

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
+from langfield.cluster import ray_session
 from langfield.io.preprocess import (
     Models,
     PreprocessReport,
@@ -28,8 +29,6 @@ from langfield.io.preprocess import (
     preprocess_view,
 )
 from langfield.io.scene import load_scene
-
-INSTALL_HINT = "Ray is not installed: pip install 'langfield[cluster]' (or pip install -e '.[cluster]')"
 
 
 class ViewWorker:
@@ -65,19 +64,12 @@ def preprocess_on_ray(
         make_models: builds the same models in each worker (picklable).
         address: a Ray cluster (``auto``, ``ray://host:10001``), or None for a local Ray in the process.
     """
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError(INSTALL_HINT) from None
     t_start = time.perf_counter()
     plans = [plan_scene(d, models.segmenter, models.encoder, models.depth, overwrite) for d in scene_dirs]
     jobs = [(str(scene.root), name, *need) for scene, _, todo in plans for name, need in todo.items()]
     reports = {str(scene.root): report for scene, report, _ in plans}
     seconds = {root: {"segmenter": 0.0, "encoder": 0.0, "depth": 0.0} for root in reports}
-    started = not ray.is_initialized()
-    if jobs and started:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
-    try:
+    with ray_session(address, needed=bool(jobs)) as ray:
         if jobs:
             from ray.util import ActorPool
 
@@ -90,9 +82,6 @@ def preprocess_on_ray(
                     add_view(reports[root], name, done, seconds[root])
                     bar.set_postfix_str(name)
                     bar.update()
-    finally:
-        if jobs and started:
-            ray.shutdown()
     for root, report in reports.items():
         finish_report(report, seconds[root], t_start)
     return list(reports.values())

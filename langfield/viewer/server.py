@@ -132,8 +132,8 @@ class Viewer:
     def _place_scene(self, cameras: list[Camera], train: set[str]) -> None:
         """Frustums for the cameras; the browser's first view looks where they look, from behind them
         (without a scene, at the bounds' centre from their -y side)."""
+        centre = self.field.meta.centre
         bounds = self.field.meta.bounds if self.field.meta.get("bounds") is not None else None
-        centre = bounds.mean(axis=0) if bounds is not None else self._splat_data[0].mean(axis=0)
         size = float(np.linalg.norm(bounds[1] - bounds[0])) if bounds is not None else 1.0
         for cam in cameras:
             self.server.scene.add_camera_frustum(
