@@ -36,7 +36,8 @@ from langfield.model import gaussians as G
 from langfield.query import MATCH_RELEVANCY, Query
 from langfield.raster.projection import covariance_3d
 from langfield.viewer.paths import look_target
-from querying.relevancy import MASK_THRESHOLD, normalize_map, smooth_map
+from langfield.viewer.video import heat_of, render_rgb, to_uint8
+from querying.relevancy import MASK_THRESHOLD
 from querying.visualize import heatmap_overlay
 
 if TYPE_CHECKING:
@@ -274,18 +275,12 @@ class Viewer:
     def heat_view(self, camera: Camera) -> np.ndarray:
         """``uint8 [H, W, 3]``: the render at ``camera``, with the current query's heat map over it and
         the outline where it passes the threshold (the plain render without a query)."""
-        with self._lock, torch.no_grad():  # one query is not shared across threads
-            rgb = self.field.render(camera, language=False).rgb.clamp(0.0, 1.0).numpy()
+        with self._lock:  # one query is not shared across threads
+            rgb = render_rgb(self.field, camera)
             if self.query is None:
-                return (rgb * 255.0 + 0.5).astype(np.uint8)
-            level, threshold = self._level(), float(self.threshold_box.value)
-            view = self.query.view(camera)
-        if level is None:
-            heat = view.normalized
-        else:
-            heat = normalize_map(smooth_map(view.maps[level]))
-        if not bool(view.found):
-            heat = torch.zeros_like(heat)
+                return to_uint8(rgb)
+            heat = heat_of(self.query.view(camera), self._level())
+            threshold = float(self.threshold_box.value)
         image = heatmap_overlay(rgb, heat)
         mask = (heat > threshold).numpy().astype(np.uint8)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)

@@ -19,11 +19,12 @@ import torch
 from tqdm import tqdm
 
 from langfield.camera import Camera
+from querying.relevancy import normalize_map, smooth_map
 from querying.visualize import heatmap_overlay
 
 if TYPE_CHECKING:
     from langfield.field import LanguageField
-    from langfield.query import Query
+    from langfield.query import Query, QueryView
 
 # Containers OpenCV's writer is asked for, with the codec each gets (mp4v: MPEG-4 part 2, which every
 # OpenCV build writes without an external encoder).
@@ -43,18 +44,33 @@ def check_video_path(path: str | Path, overwrite: bool) -> Path:
     return path
 
 
+def render_rgb(field: LanguageField, camera: Camera) -> np.ndarray:
+    """``float [H, W, 3]`` the colour render at ``camera``, in [0, 1] (no latents rendered)."""
+    with torch.no_grad():
+        return field.render(camera, language=False).rgb.clamp(0.0, 1.0).numpy()
+
+
+def to_uint8(rgb: np.ndarray) -> np.ndarray:
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def heat_of(view: QueryView, level: int | None = None) -> torch.Tensor:
+    """``[H, W]`` the heat map of a one-phrase query's view: the normalised relevancy at the level the
+    mask pipeline chose (or at ``level``, smoothed and stretched the same way); zero where the phrase is
+    found nowhere in the view."""
+    heat = view.normalized if level is None else normalize_map(smooth_map(view.maps[level]))
+    return heat if bool(view.found) else torch.zeros_like(heat)
+
+
 def path_frames(
     field: LanguageField, cameras: Sequence[Camera], query: Query | None = None, progress: bool = True
 ) -> Iterator[np.ndarray]:
     """``uint8 [H, W, 3]`` RGB frames (``[H, 2W, 3]`` with a query) along ``cameras``."""
     for cam in tqdm(cameras, desc="render", disable=not progress, leave=False):
-        with torch.no_grad():
-            rgb = field.render(cam, language=False).rgb.clamp(0.0, 1.0).numpy()
-        frame = (rgb * 255.0 + 0.5).astype(np.uint8)
+        rgb = render_rgb(field, cam)
+        frame = to_uint8(rgb)
         if query is not None:
-            view = query.view(cam)
-            heat = view.normalized if bool(view.found) else torch.zeros(rgb.shape[:2])
-            frame = np.concatenate([frame, heatmap_overlay(rgb, heat)], axis=1)
+            frame = np.concatenate([frame, heatmap_overlay(rgb, heat_of(query.view(cam)))], axis=1)
         yield frame
 
 
