@@ -95,10 +95,11 @@ TRAIN_FLAGS = (
     _flag("--num-gaussians", type=int, default=None, help="initial Gaussians (default: sized to the scene)"),
     _flag(
         "--init",
-        choices=["dense", "sfm", "depth", "random"],
-        default="dense",
-        help="where the Gaussians start: plane-sweep stereo on the training views (default), COLMAP's "
-        "sparse SIFT points, the depth prior aligned to the dense points, or random in the bounds",
+        choices=["auto", "dense", "sfm", "depth", "random"],
+        default="auto",
+        help="where the Gaussians start: plane-sweep stereo on the training views, COLMAP's sparse SIFT "
+        "points, the depth prior aligned to the stereo points, or random in the bounds (default auto: "
+        "depth when every training view has a depth prior, else dense)",
     ),
     _flag("--bounds", type=bounds_arg, default=None, help="xmin,ymin,zmin,xmax,ymax,zmax to initialise in"),
     _flag("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)"),

@@ -77,7 +77,11 @@ class TrainConfig:
     seed: int = 0
     # Where the Gaussians start (langfield.training.initialisation): plane-sweep stereo on the training views,
     # COLMAP's sparse SIFT points, the depth prior aligned to the dense points, or random in the bounds.
-    init: Literal["dense", "sfm", "depth", "random"] = "dense"
+    # "auto": "depth" when every training view has a depth prior that training uses, else "dense"
+    # (init_method). Three views' plane sweep resolves 5-7 % of a room's pixels, a third of them off by
+    # more than 2 %, and the start is topped up around them; the aligned prior gives every pixel a point.
+    # Rooms of 3 layouts x 3 seeds: docs/figures.md, "A start from the depth prior".
+    init: Literal["auto", "dense", "sfm", "depth", "random"] = "auto"
     init_fill: float = 0.1  # random points added, as a fraction of the photo points
     backend: str = "auto"
     num_gaussians: int | None = None
@@ -282,8 +286,8 @@ def _check_start_and_model(c: _ConfigCheck, cfg: TrainConfig) -> None:
     c.whole("seed", 0)
     if cfg.backend not in ("auto", "torch", "cpu"):
         c.fail("backend", "'auto', 'torch' or 'cpu'")
-    if cfg.init not in INIT_METHODS:
-        c.fail("init", " or ".join(repr(m) for m in INIT_METHODS))
+    if cfg.init not in ("auto", *INIT_METHODS):
+        c.fail("init", " or ".join(repr(m) for m in ("auto", *INIT_METHODS)))
     c.number("init_fill", 0.0, 10.0)
     c.whole("num_gaussians", 1, optional=True)
     c.whole("max_gaussians", 1, optional=True)
@@ -321,7 +325,7 @@ def _check_densification_and_language(c: _ConfigCheck, cfg: TrainConfig) -> None
     for name in ("densify", "lad", "lop", "random_background", "dark_backdrop", "carve_free_space"):
         if not isinstance(getattr(cfg, name), bool):
             c.fail(name, "True or False")
-    if cfg.carve_free_space and cfg.init not in ("dense", "depth"):
+    if cfg.carve_free_space and cfg.init not in ("auto", "dense", "depth"):
         c.fail("carve_free_space", "False unless init is 'dense' or 'depth' (it carves with their stereo)")
 
 
@@ -585,21 +589,33 @@ class ViewTargets:
         return ViewTargets(cam, image, coverage, latents, valid, depth, depth_input)
 
 
+def init_method(scene: Scene, cfg: TrainConfig) -> str:
+    """``cfg.init`` with "auto" resolved: "depth" when every training view has a depth prior and
+    training uses it (``cfg.depth`` not False), else "dense"."""
+    if cfg.init != "auto":
+        return cfg.init
+    names = scene.names("train")
+    priors = cfg.depth is not False and all(scene.depth_path(n) is not None for n in names)
+    return "depth" if priors and scene.depth_kind is not None else "dense"
+
+
 def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
-    """Where the Gaussians start (:func:`~langfield.training.initialisation.start_points`, ``cfg.init``)."""
+    """Where the Gaussians start (:func:`~langfield.training.initialisation.start_points`, ``cfg.init``
+    as :func:`init_method` resolves it)."""
     bounds = scene_bounds(scene, cfg)
     train_cams = scene.cameras("train")
     pixels = max(c.width * c.height for c in train_cams)  # of one image
     n = cfg.num_gaussians or G.num_gaussians_for_scene(bounds, pixels, len(train_cams))
+    method = init_method(scene, cfg)
     return start_points(
-        cfg.init,
+        method,
         train_cams,
         [scene.image(c.name) for c in train_cams],
         bounds,
         n,
         seed=cfg.seed,
         fill=cfg.init_fill,
-        priors=[scene.depth(c.name) for c in train_cams] if cfg.init == "depth" else None,
+        priors=[scene.depth(c.name) for c in train_cams] if method == "depth" else None,
         depth_kind=scene.depth_kind,
     )
 

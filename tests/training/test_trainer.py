@@ -64,7 +64,7 @@ def test_zero_iterations_returns_the_initial_field(scene) -> None:
 def test_zero_iterations_from_the_photos_returns_their_start_points(scene) -> None:
     from langfield.training.initialisation import start_points
 
-    field = _train(scene, iterations=0, num_gaussians=300, seed=2)
+    field = _train(scene, iterations=0, num_gaussians=300, seed=2, init="dense")
     cams = scene.cameras("train")
     bounds = np.asarray(field.meta["bounds"])
     start = start_points("dense", cams, [scene.image(c.name) for c in cams], bounds, 300, seed=2)
