@@ -76,7 +76,7 @@ class TrainConfig:
     iterations: int | None = None  # None: sized by the scene (training_length); N forces N
     seed: int = 0
     # Where the Gaussians start (langfield.training.initialisation): plane-sweep stereo on the training views,
-    # COLMAP's sparse SIFT points, the depth prior aligned to the dense points, or random in the bounds.
+    # COLMAP's sparse SIFT points, the depth prior aligned to the stereo depths, or random in the bounds.
     # "auto": "depth" when every training view has a depth prior that training uses, else "dense"
     # (init_method). Three views' plane sweep resolves 5-7 % of a room's pixels, a third of them off by
     # more than 2 %, and the start is topped up around them; the aligned prior gives every pixel a point.
