@@ -159,6 +159,19 @@ def _snapped(field: LanguageField, latents: Tensor) -> Tensor:
     return snapped
 
 
+def _tied(field: LanguageField, latents: Tensor, margin: float = 1e-6) -> Tensor:
+    """[3, ...] bool: nonzero latents whose two nearest entries lie within ``margin`` in cosine, where
+    float32 rounding decides which of them a reading picks (either is right)."""
+    tied = torch.zeros(latents.shape[:-1], dtype=torch.bool)
+    for level, entries in enumerate(field.codebook):
+        if len(entries) < 2:
+            continue
+        cos = F.normalize(latents[level].double(), dim=-1) @ entries.double().T
+        top = cos.topk(2, dim=-1).values
+        tied[level] = ((top[..., 0] - top[..., 1]) < margin) & (latents[level].norm(dim=-1) > 0)
+    return tied
+
+
 def test_codebook_look_up_equals_decoding_the_nearest_entry(field, scene) -> None:
     """The codebook path looks each pixel's relevancy up in a per-entry table; the reference decodes
     every pixel's nearest entry, found here by angle, independently of codebook_indices (a zero
@@ -173,8 +186,11 @@ def test_codebook_look_up_equals_decoding_the_nearest_entry(field, scene) -> Non
         emb = torch.from_numpy(enc.encode_text(["sofa", "lamp", *CANONICAL_PHRASES]))
         expected = relevancy(field.decoder.decode(_snapped(field, latents)), emb[:2], emb[2:])
     got = q.relevancy_maps(latents)
-    torch.testing.assert_close(got, expected, atol=1e-5, rtol=0)
-    torch.testing.assert_close(q.relevancy_maps(latents, exact=True), expected, atol=1e-5, rtol=0)
+    clear = ~_tied(field, latents).expand_as(got)  # [2, 3, H, W]
+    assert clear.float().mean() > 0.99  # near-duplicate entries (repeats of a concept) tie too
+    torch.testing.assert_close(got[clear], expected[clear], atol=1e-5, rtol=0)
+    exact = q.relevancy_maps(latents, exact=True)
+    torch.testing.assert_close(exact[clear], expected[clear], atol=1e-5, rtol=0)
     zero = relevancy(field.decoder.decode(torch.zeros(1, 3)), emb[:2], emb[2:])[:, 0]  # [2]
     torch.testing.assert_close(got[:, :, 0, 0], zero[:, None].expand(2, 3), atol=1e-5, rtol=0)
     # Every pixel's relevancy is one of its level's table values: a few distinct values per level.

@@ -32,7 +32,8 @@ def train_config(args: argparse.Namespace):
     )
     # Flags left unset keep TrainConfig's defaults.
     given = {name: getattr(args, name) for name in SPARSE_VIEW_FLAGS if getattr(args, name) is not None}
-    for name in ("lambda_opacity", "language_start", "autoencoder_spread", "language_decode"):
+    language = ("language_start", "autoencoder_spread", "language_balance", "language_decode")
+    for name in ("lambda_opacity", *language):
         if getattr(args, name) is not None:
             given[name] = getattr(args, name)
     return replace(cfg, **given)
@@ -127,6 +128,13 @@ TRAIN_FLAGS = (
         default=None,
         help="weight of the autoencoder's term that spreads unlike concepts over the latent sphere "
         "(default 0.01; 0: the paper's eq. 2 alone)",
+    ),
+    _flag(
+        "--language-balance",
+        type=float,
+        default=None,
+        help="L_LF weighs each pixel by its mask's area to the power minus this (default 0.25; 0: every "
+        "pixel alike, the paper's; 1: every mask alike)",
     ),
     _flag(
         "--language-decode",

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from langfield import LanguageField, TrainConfig, load_scene, train
-from langfield.model.language import language_loss
+from langfield.model.language import language_loss, mask_balance
 from langfield.training.trainer import language_targets
 
 GEOMETRY = ("means", "log_scales", "quats", "opacity_logits")
@@ -36,6 +36,52 @@ def test_language_loss_hand_computed():
     valid = torch.zeros(3, 1, 2, dtype=torch.bool)
     valid[0, 0, 0] = True
     assert language_loss(rendered, target, valid).item() == pytest.approx(3.5)
+
+
+def test_language_loss_weighs_pixels_by_their_weight():
+    rendered = torch.zeros(3, 1, 3, 3)
+    target = torch.zeros(3, 1, 3, 3)
+    target[2, 0, :, 0] = torch.tensor([1.0, 2.0, 4.0])  # L1 errors 1, 2, 4 at level 2
+    weight = torch.zeros(3, 1, 3)
+    weight[2, 0] = torch.tensor([0.5, 0.25, 0.25])
+    assert language_loss(rendered, target, weight).item() == pytest.approx((0.5 + 0.5 + 1.0) / 1.0)
+    # weights of any scale give the same weighted mean; all-equal weights give the plain mean
+    assert language_loss(rendered, target, weight * 1e-4).item() == pytest.approx(2.0)
+    assert language_loss(rendered, target, weight > 0).item() == pytest.approx(7.0 / 3.0)
+
+
+def test_mask_balance_weighs_each_mask_by_its_area_to_a_power():
+    seg = torch.full((3, 2, 4), -1, dtype=torch.long)
+    seg[0, 0] = torch.tensor([0, 0, 0, 1])  # a mask of 3 pixels and one of 1; the second row has none
+    seg[1] = 2  # one mask over the whole view
+    plain = mask_balance(seg, 0.0)
+    torch.testing.assert_close(plain, (seg >= 0).float())
+    even = mask_balance(seg, 1.0)
+    torch.testing.assert_close(even[0, 0], torch.tensor([1 / 3, 1 / 3, 1 / 3, 1.0]))
+    assert even[0, 0, :3].sum() == pytest.approx(even[0, 0, 3])  # every mask weighs alike
+    assert (even[0, 1] == 0).all() and (even[2] == 0).all()  # no mask, no weight
+    torch.testing.assert_close(mask_balance(seg, 0.5)[0, 0], torch.tensor([3**-0.5] * 3 + [1.0]))
+    # the small mask's error now moves the loss as much as the large mask's
+    target = torch.zeros(3, 2, 4, 3)
+    target[0, 0, 3, 0] = 1.0  # only the one-pixel mask is wrong
+    assert language_loss(torch.zeros_like(target), target, plain).item() == pytest.approx(0.25)
+    assert language_loss(torch.zeros_like(target), target, even).item() == pytest.approx(0.5)
+
+
+def test_training_weighs_l_lf_by_mask_balance(scene, monkeypatch):
+    import langfield.training.trainer as trainer
+
+    seen = []
+
+    def spy(segments, power):
+        seen.append(power)
+        return mask_balance(segments, power)
+
+    monkeypatch.setattr(trainer, "mask_balance", spy)
+    cfg = TrainConfig(iterations=2, num_gaussians=200, autoencoder_iterations=5, language_balance=0.75)
+    field = train(scene, cfg, progress=False)
+    assert seen == [0.75] * len(scene.names("train"))
+    assert field.meta["config"]["language_balance"] == 0.75
 
 
 def test_language_loss_level_without_masks_is_zero_and_finite():

@@ -559,7 +559,7 @@ def test_a_view_at_half_size_averages_the_photo_and_samples_the_targets() -> Non
     torch.testing.assert_close(half.image, image.reshape(3, 2, 4, 2, 3).mean(dim=(1, 3)))
     torch.testing.assert_close(half.coverage[:, 0], torch.zeros(3))  # pixels 0-1 of each row: empty
     torch.testing.assert_close(half.latents, latents[:, 1::2][:, :, 1::2])  # the nearest pixel centres
-    assert half.valid.shape == (3, 3, 4) and half.depth.shape == (3, 4)
+    assert half.language_weight.shape == (3, 3, 4) and half.depth.shape == (3, 4)
     torch.testing.assert_close(half.depth_input[1], prior[1::2, 1::2])
     bare = ViewTargets(cam, image).half_size()
     assert bare.coverage is None and bare.latents is None and bare.depth is None
