@@ -7,8 +7,8 @@ Cases (each a :class:`~langfield.training.trainer.TrainConfig` change from the f
 - ``no-lad``: the plain global depth loss only (no per-mask normalisation);
 - ``no-depth``: without L_D;
 - ``per-gaussian``: one learnable latent per Gaussian instead of the hash grid (LangSplat's way);
-- ``paper-language``: the paper's autoencoder (eq. 2 alone, no spread term) and its reading of a
-  rendered latent (decoded as it is, no codebook);
+- ``paper-language``: the paper's autoencoder (eq. 2 alone, no spread term), its L_LF (every pixel
+  alike, no mask balance) and its reading of a rendered latent (decoded as it is, no codebook);
 - ``no-opacity-reg`` (not in the default set): without the L1 opacity penalty (``lambda_opacity=0``);
 - ``baseline`` (not in the default set): per-Gaussian latents, no L_D, no LOP: LangSplat's way with
   the sparse-view training, the reference the full method is measured against.
@@ -16,7 +16,8 @@ Cases (each a :class:`~langfield.training.trainer.TrainConfig` change from the f
 The sparse-view switches (:mod:`langfield.training.regularisers`,
 :mod:`langfield.training.initialisation`), each one change from the defaults:
 
-- ``random-init``, ``sfm-init``, ``depth-init``: another start than the plane-sweep points;
+- ``random-init``, ``sfm-init``, ``depth-init``: another start than the default's (``init="auto"``:
+  the depth prior where every training view has one, else the plane-sweep points);
 - ``no-dropout``: without Gaussian dropout; ``no-virtual``: without the virtual-view consistency term;
   ``no-random-background``: the scene's own background colour in every iteration;
   ``no-empty-space``: no use of the empty space the photos show (alpha, a black backdrop);
@@ -55,7 +56,7 @@ CASES: dict[str, dict[str, Any]] = {
     "no-lad": {"lad": False},
     "no-depth": {"depth": False},
     "per-gaussian": {"language_features": "per-gaussian"},
-    "paper-language": {"autoencoder_spread": 0.0, "language_decode": "continuous"},
+    "paper-language": {"autoencoder_spread": 0.0, "language_balance": 0.0, "language_decode": "continuous"},
     "no-opacity-reg": {"lambda_opacity": 0.0},
     "baseline": {"language_features": "per-gaussian", "depth": False, "lop": False},
     "random-init": {"init": "random"},

@@ -330,3 +330,13 @@ def test_setting_the_codebook_to_none_saves_a_continuous_field(field, tmp_path):
     copy.codebook = None
     loaded = LanguageField.load(copy.save(tmp_path / "out"))
     assert loaded.codebook is None and loaded.meta["language"]["codebook"] is None
+
+
+def test_the_paper_language_ablation_keeps_the_papers_language_settings():
+    from dataclasses import replace
+
+    from langfield.eval.ablate import CASES
+
+    cfg = replace(TrainConfig(), **CASES["paper-language"])
+    assert cfg.language_balance == 0.0 and TrainConfig().language_balance > 0.0  # L_LF: pixels alike
+    assert cfg.autoencoder_spread == 0.0 and cfg.language_decode == "continuous"
