@@ -4,8 +4,9 @@ ground truth on a synthetic scene (one that make_room wrote: it knows its object
 python examples/language_losses.py FIELD_DIR [SCENE] [--json OUT.json] [--split train]
 
 Rows, from the field as trained to the query pipeline's ceiling:
-- field: the field's rendered latents, decoded (what `langfield eval` scores); then the same latents
-  decoded as they are (the paper's reading) and read as their nearest codebook entries;
+- field: the field's rendered latents, read as the field records (what `langfield eval` scores); then
+  the same latents decoded as they are (the paper's reading), read as their nearest codebook entries,
+  and read by vote among the entries of the Gaussians at each pixel (langfield.reading);
 - aggregated latents, trained geometry: every Gaussian's latents the rendering-weighted mean of the
   training views' mask latents (langfield.training.aggregate, no training), rendered with the trained
   Gaussians;
@@ -105,17 +106,25 @@ def main(argv: list[str]) -> int:
     # field's own, or the refitted autoencoder's for a field trained without one).
     codebook = field.codebook or [torch.nn.functional.normalize(p, dim=-1) for p in targets.prototypes]
     readers = {}
-    for decode in ("continuous", "codebook"):
+    for decode in ("continuous", "codebook", "vote"):
         reader = LanguageField(
             field.splats,
             field.color,
-            field.meta,
+            dict(field.meta),
             field.language,
             field.decoder,
-            codebook if decode == "codebook" else None,
+            None if decode == "continuous" else codebook,
         )
-        readers[decode] = {n: (reader.decode_levels(z), alpha) for n, (z, alpha) in rendered.items()}
-    renders = readers["continuous" if field.codebook is None else "codebook"]  # what eval scores
+        if decode == "vote":
+            reader.language_decode = "vote"
+            with torch.no_grad():
+                readers[decode] = {
+                    n: (reader.decode_entries(reader.read_entries(scene.camera(n), z, alpha)), alpha)
+                    for n, (z, alpha) in rendered.items()
+                }
+        else:
+            readers[decode] = {n: (reader.decode_levels(z), alpha) for n, (z, alpha) in rendered.items()}
+    renders = readers[field.language_decode]  # what eval scores
     autoencoder = targets.autoencoder
     refit, own = autoencoder.decoder.state_dict(), field.decoder.decoder.state_dict()
     diff = max(float((refit[k] - own[k]).abs().max()) for k in own)
@@ -172,7 +181,10 @@ def main(argv: list[str]) -> int:
         "field, rendered latents decoded as they are (continuous, the paper)": score(
             lambda n: readers["continuous"][n]
         ),
-        "field, rendered latents read through the codebook": score(lambda n: readers["codebook"][n]),
+        "field, rendered latents read as their nearest codebook entry": score(
+            lambda n: readers["codebook"][n]
+        ),
+        "field, read by vote among the Gaussians' codebook entries": score(lambda n: readers["vote"][n]),
         f"aggregated latents, trained geometry ({aggregate_seconds:.1f} s)": score(aggregated_latents),
         "field, best level": score(lambda n: renders[n], best_level=True),
         "true latents, trained geometry": score(true_latents),

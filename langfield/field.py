@@ -31,7 +31,13 @@ from torch import Tensor, nn
 from encoders.autoencoder import AutoencoderConfig, LanguageDecoder, decoder_state, load_decoder
 from langfield.camera import Camera
 from langfield.constants import LATENT_NORM_EPS, TEXT_TABLE_FILE
-from langfield.io.field_meta import FieldFileError, FieldMeta, check_field_meta, check_tensors
+from langfield.io.field_meta import (
+    LANGUAGE_DECODES,
+    FieldFileError,
+    FieldMeta,
+    check_field_meta,
+    check_tensors,
+)
 from langfield.io.ply import write_gaussian_ply
 from langfield.io.scene import Scene, load_scene
 from langfield.model import gaussians as G
@@ -40,6 +46,7 @@ from langfield.model.hashgrid import HashGridConfig
 from langfield.model.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
 from langfield.query import Query, make_query
 from langfield.raster import Backend, rasterize, rasterize_with_second_pass
+from langfield.reading import concept_groups, vote_entries
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -148,6 +155,31 @@ class LanguageField(nn.Module):
         self._codebook = [check_codebook_level(c, level) for level, c in enumerate(entries)]
 
     @property
+    def language_decode(self) -> str | None:
+        """How rendered latents are read (docs/how-it-works.md): ``"vote"`` (:meth:`read_entries`),
+        ``"codebook"`` (the nearest entry) or ``"continuous"`` (decoded as they are); None without
+        language. Settable between ``"vote"`` and ``"codebook"``: the reading changes nothing trained."""
+        if self.meta.language is None:
+            return None
+        if self.codebook is None:
+            return "continuous"
+        return "vote" if self.meta.language_decode == "vote" else "codebook"
+
+    @language_decode.setter
+    def language_decode(self, value: str) -> None:
+        if value not in LANGUAGE_DECODES:
+            raise ValueError(f"language_decode must be one of {LANGUAGE_DECODES}, got {value!r}")
+        if self.meta.language is None:
+            raise ValueError("language_decode: this field has no language")
+        if (value == "continuous") != (self.codebook is None):
+            raise ValueError(
+                f"language_decode {value!r}: 'vote' and 'codebook' read through a codebook, 'continuous' "
+                f"without one; this field has {'none' if self.codebook is None else 'one'} "
+                f"(set field.codebook = None to read it continuously)"
+            )
+        self.meta["language"] = dict(self.meta["language"], decode=value)
+
+    @property
     def has_language(self) -> bool:
         return self.language is not None or "lang" in self.splats
 
@@ -208,6 +240,45 @@ class LanguageField(nn.Module):
             raise ValueError("this field has no codebook (it was trained with --language-decode continuous)")
         return self._codebook
 
+    def read_entries(self, camera: Camera, latents: Tensor, alpha: Tensor) -> Tensor:
+        """``[3, H, W]`` long: the codebook entry each pixel of a view reads at each level (-1: none).
+
+        ``"codebook"``: the nearest entry of the pixel's rendered latent. ``"vote"``: that entry where the
+        Gaussians whose own latents are nearest to its concept carry at least
+        :data:`~langfield.reading.VOTE_SHARE` of the pixel's weight, else the entry whose Gaussians carry
+        the most (:func:`langfield.reading.vote_entries`; it renders the entries' weights in the view).
+
+        Args:
+            camera: the view.
+            latents, alpha: its render's ``latents`` ``[3, H, W, 3]`` and ``alpha`` ``[H, W]``.
+        """
+        codebook = self._need_codebook()
+        nearest = self.codebook_indices(latents)
+        if self.language_decode != "vote":
+            return nearest
+        with torch.no_grad():
+            own = self.codebook_indices(self.gaussian_latents().transpose(0, 1))  # [3, N]
+            geometry = (
+                self.splats["means"],
+                self.splats["quats"],
+                G.scales(self.splats),
+                G.opacities(self.splats).reshape(-1),
+            )
+
+            def weights(values: Tensor) -> Tensor:
+                return rasterize(*geometry, values, camera, backend=self.meta.backend).image
+
+            sizes = [int(c.shape[0]) for c in codebook]
+            groups = [concept_groups(c) for c in codebook]
+            return vote_entries(nearest, own, sizes, groups, alpha, weights)
+
+    def decode_entries(self, index: Tensor) -> Tensor:
+        """``[3, ...]`` codebook entry indices (-1: none, read as the zero latent) -> ``[3, ..., 512]``
+        their decoded CLIP features (no gradient)."""
+        with torch.no_grad():
+            rows = [self.codebook_features(level) for level in range(N_LEVELS)]
+        return torch.stack([rows[level][index[level]] for level in range(N_LEVELS)])
+
     def decode_levels(self, latents: Tensor) -> Tensor:
         """``[3, ..., 3]`` latents of the three levels -> ``[3, ..., 512]`` CLIP features.
 
@@ -219,10 +290,7 @@ class LanguageField(nn.Module):
         """
         if self.codebook is None:
             return self.decode(latents)
-        index = self.codebook_indices(latents)
-        with torch.no_grad():
-            rows = [self.codebook_features(level) for level in range(N_LEVELS)]
-        return torch.stack([rows[level][index[level]] for level in range(N_LEVELS)])
+        return self.decode_entries(self.codebook_indices(latents))
 
     @property
     def num_gaussians(self) -> int:
@@ -443,7 +511,7 @@ class LanguageField(nn.Module):
         meta.pop("text_table_sha256", None)
         if meta.get("language"):  # what the saved tensors hold, whatever the meta said before
             codebook = None if self.codebook is None else [int(c.shape[0]) for c in self.codebook]
-            meta["language"] = dict(meta["language"], codebook=codebook)
+            meta["language"] = dict(meta["language"], codebook=codebook, decode=self.language_decode)
         table = self._text_table()
         if table is not None:
             shutil.copyfile(table, folder / TEXT_TABLE_FILE)

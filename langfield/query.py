@@ -7,10 +7,12 @@ when it has one) and scored by LERF's relevancy (:func:`querying.relevancy.relev
 LangSplat's evaluation (:func:`querying.relevancy.relevancy_mask`). A 3D selection scores every
 Gaussian's own latents the same way, so an object can be exported as a PLY or rendered alone.
 
-Reading a latent. A field trained with a codebook (the default, ``--language-decode codebook``)
-reads each rendered latent as the nearest of its level's training-mask latents
-(:meth:`langfield.field.LanguageField.decode_levels`): a query decodes those few dozen entries once,
-scores them, and looks each pixel's relevancy up by the index of its nearest entry, which is exact.
+Reading a latent. A field trained with a codebook (``--language-decode vote``, the default, or
+``codebook``) reads each pixel as one of its level's training-mask latents: by vote among the entries of
+the Gaussians that render it (:meth:`langfield.field.LanguageField.read_entries`), or as the nearest
+entry of its rendered latent (:meth:`~langfield.field.LanguageField.decode_levels`). A query decodes
+those few dozen entries once, scores them, and looks each pixel's relevancy up by its entry, which is
+exact.
 
 A field read continuously (``--language-decode continuous``, the paper's reading) decodes every latent.
 Decoding a 160x120 view exactly (3 x 19,200 latents through the 3-16-...-512 decoder, about 240k
@@ -30,7 +32,8 @@ inside a cell that one linear piece covers; elsewhere the error is measured agai
 ``LanguageField.decode`` reads them, so every one lies inside the lattice's cube.
 
 Per view, a query rasterizes only the nine latent channels, with every Gaussian's latents computed
-once per query (they do not depend on the camera).
+once per query (they do not depend on the camera); a field read by vote then renders one channel per
+codebook entry its Gaussians carry (:mod:`langfield.reading`).
 
 Example:
     >>> field = langfield.LanguageField.load("out/")  # doctest: +SKIP
@@ -324,6 +327,7 @@ class _Shared:
         self.gaussians: tuple[Tensor, ...] | None = None
         self.channels: Tensor | None = None
         self.last_render: tuple[Camera, Tensor, Tensor] | None = None
+        self.last_entries: tuple[Camera, Tensor] | None = None
         self.gaussian_rel: Tensor | None = None
         self.code_tables: list[Tensor] | None = None
 
@@ -386,6 +390,23 @@ class _Shared:
         self.last_render = (camera, rendered, out.alpha)
         return rendered, out.alpha
 
+    def entries(self, camera: Camera) -> Tensor:
+        """``[3, H, W]`` the codebook entries the view's pixels read (:meth:`LanguageField.read_entries`);
+        the last view's are kept."""
+        if self.last_entries is not None and self.last_entries[0] is camera:
+            return self.last_entries[1]
+        latents, alpha = self.render(camera)
+        with torch.no_grad():
+            index = self.field.read_entries(camera, latents, alpha)
+        self.last_entries = (camera, index)
+        return index
+
+    def entry_relevancy(self, index: Tensor) -> Tensor:
+        """``[3, ...]`` codebook entry indices (level first; -1 the zero latent) -> ``[Q, 3, ...]`` the
+        relevancy of the decoded entries, looked up."""
+        tables = self.codebook_tables()
+        return torch.stack([tables[level][:, index[level]] for level in range(N_LEVELS)], dim=1)
+
     def codebook_tables(self) -> list[Tensor]:
         """Per level, ``[Q, P_l + 1]`` relevancy of the decoded codebook entries, then of the zero latent
         (:meth:`LanguageField.codebook_features`); computed once per query."""
@@ -403,9 +424,7 @@ class _Shared:
         a codebook each latent's nearest entry, whose relevancy is looked up (the same values as
         decoding it), else every latent decoded (in chunks)."""
         if self.field.codebook is not None:
-            index = self.field.codebook_indices(latents)
-            tables = self.codebook_tables()
-            return torch.stack([tables[level][:, index[level]] for level in range(N_LEVELS)], dim=1)
+            return self.entry_relevancy(self.field.codebook_indices(latents))
         flat = latents.reshape(-1, latents.shape[-1])
         q = self.n_phrases
         out = torch.empty(q, flat.shape[0])
@@ -520,6 +539,22 @@ class Query:
         maps = shared.exact_relevancy(latents) if exact else shared.lattice_relevancy(latents)
         return self._shape(maps[self._rows])
 
+    def entry_maps(self, index: Tensor) -> Tensor:
+        """Relevancy of every level from the codebook entries a view reads (a field with a codebook).
+
+        Args:
+            index: ``[3, H, W]`` long, :meth:`LanguageField.read_entries` (-1: the zero latent).
+
+        Returns:
+            ``[Q, 3, H, W]`` relevancy in [0, 1] (``[3, H, W]`` for a query of one phrase), before
+            :func:`fill_empty`.
+        """
+        if self._shared.field.codebook is None:
+            raise ValueError("entry_maps: this field has no codebook; use relevancy_maps on its latents")
+        if index.dim() != 3 or index.shape[0] != N_LEVELS:
+            raise ValueError(f"entry_maps: expected entry indices [3, H, W], got {tuple(index.shape)}")
+        return self._shape(self._shared.entry_relevancy(index)[self._rows])
+
     def view(self, camera: CameraKey, exact: bool = False) -> QueryView:
         """Everything the query gives in one view (relevance, mask, level, ...); see :class:`QueryView`.
 
@@ -535,7 +570,10 @@ class Query:
             self._shared.lattice_channels()  # built once, on every thread: products worth parallelising
         with _one_thread(not exact), torch.no_grad():
             latents, alpha = self._shared.render(cam)
-            maps = self.relevancy_maps(latents, exact)
+            if self._shared.field.codebook is not None:
+                maps = self.entry_maps(self._shared.entries(cam))
+            else:
+                maps = self.relevancy_maps(latents, exact)
             maps = fill_empty(maps[None] if self._single else maps, alpha)  # [Q, 3, H, W]
             result = relevancy_mask(maps)
             h, w = maps.shape[-2:]

@@ -39,5 +39,6 @@ def test_language_losses_tabulates_every_stage(tiny_field, tmp_path, capsys) -> 
     rows = result["rows"]
     assert rows["oracle"]["mIoU"] > 0.95
     assert any(key.startswith("aggregated latents") for key in rows)
+    assert rows["field"] == rows["field, read by vote among the Gaussians' codebook entries"]  # the default
     assert all(0.0 <= r["mIoU"] <= 1.0 for r in rows.values())
     assert "| field |" in capsys.readouterr().out

@@ -255,6 +255,8 @@ def _set(path: str, value):
         (_set("language.codebook", [3, -1, 2]), "language.codebook"),
         (_set("language.codebook", [3, True, 2]), "language.codebook"),
         (_set("language.codebook", "3,2,2"), "language.codebook"),
+        (_set("language.decode", "mode"), "language.decode"),
+        (_set("language.decode", "continuous"), "language.decode"),  # the field has a codebook
         (_set("text_encoder", {"kind": "magic"}), "text_encoder.kind"),
         (_set("scene_args", "fast"), "scene_args"),
         (_set("format_version", 99), "format_version"),

@@ -29,6 +29,8 @@ from langfield.query import (
     make_query,
     text_encoder_for,
 )
+from langfield.raster import rasterize
+from langfield.reading import VOTE_SHARE
 from querying.evaluation import mask_iou
 from querying.relevancy import CANONICAL_PHRASES, choose_level, relevancy, relevancy_mask
 
@@ -127,8 +129,11 @@ def test_a_query_renders_the_latents_field_render_gives(field, scene) -> None:
     cam = _test_camera(scene, 3)
     with torch.no_grad():
         r = field.render(cam)
-    expected = fill_empty(q.relevancy_maps(r.latents), r.alpha)
+        expected = fill_empty(q.entry_maps(field.read_entries(cam, r.latents, r.alpha)), r.alpha)
     torch.testing.assert_close(q.view(cam).maps, expected, atol=1e-5, rtol=0)
+    nearest = _with_decode(field, "codebook")
+    expected = fill_empty(nearest.query(["sofa", "rug"]).relevancy_maps(r.latents), r.alpha)
+    torch.testing.assert_close(nearest.query(["sofa", "rug"]).view(cam).maps, expected, atol=1e-5, rtol=0)
 
 
 def test_exact_view_decodes_every_pixel(field, scene) -> None:
@@ -138,8 +143,63 @@ def test_exact_view_decodes_every_pixel(field, scene) -> None:
         r = field.render(cam)
         enc = TableTextEncoder(field.folder / TEXT_TABLE_FILE)
         emb = torch.from_numpy(enc.encode_text(["sofa", "lamp", *CANONICAL_PHRASES]))
-        expected = fill_empty(relevancy(field.decode_levels(r.latents), emb[:2], emb[2:]), r.alpha)
+        decoded = field.decode_entries(field.read_entries(cam, r.latents, r.alpha))
+        expected = fill_empty(relevancy(decoded, emb[:2], emb[2:]), r.alpha)
     torch.testing.assert_close(q.view(cam, exact=True).maps, expected, atol=1e-5, rtol=0)
+
+
+def _with_decode(field: LanguageField, decode: str) -> LanguageField:
+    """The same field read another way (its own meta, so ``field`` keeps its reading)."""
+    copy = LanguageField(
+        field.splats, field.color, dict(field.meta), field.language, field.decoder, field.codebook
+    )
+    copy.folder = field.folder
+    copy.language_decode = decode
+    return copy
+
+
+def _vote_reference(field: LanguageField, cam: Camera, latents: Tensor, alpha: Tensor) -> Tensor:
+    """The vote of langfield.reading, from one render per entry: entries within 2 degrees by a
+    transitive closure, the weight each entry's Gaussians carry, and the rule per pixel."""
+    splats = field.splats
+    geometry = (splats["means"], splats["quats"], G.scales(splats), G.opacities(splats).reshape(-1))
+    own = field.codebook_indices(field.gaussian_latents().transpose(0, 1))
+    nearest = field.codebook_indices(latents)
+    out = torch.empty_like(nearest)
+    for level, entries in enumerate(field.codebook):
+        p = len(entries)
+        linked = torch.rad2deg(torch.arccos((entries @ entries.T).clamp(-1, 1))) < 2.0
+        for _ in range(p):  # transitive closure
+            linked = linked | ((linked.float() @ linked.float()) > 0)
+        same = torch.zeros(p + 1, p + 1, dtype=torch.bool)  # slot p: no entry, a concept of its own
+        same[:p, :p] = linked | torch.eye(p, dtype=torch.bool)
+        same[p, p] = True
+        slot_of = torch.where(own[level] < 0, p, own[level])
+        renders = [
+            rasterize(*geometry, (slot_of == s).float()[:, None], cam, backend=field.meta.backend)
+            for s in range(p + 1)
+        ]
+        weights = torch.stack([r.image[..., 0] for r in renders])  # [P + 1, H, W]
+        near = torch.where(nearest[level] < 0, p, nearest[level])
+        carried = (same[near].permute(2, 0, 1) * weights).sum(dim=0)
+        mode = weights.argmax(dim=0)
+        chosen = torch.where(carried >= VOTE_SHARE * alpha, near, mode)
+        out[level] = torch.where(chosen == p, -1, chosen)
+    return out
+
+
+def test_vote_reading_matches_a_render_per_entry(field, scene) -> None:
+    assert field.language_decode == "vote"
+    for i in (0, 2):
+        cam = _test_camera(scene, i)
+        with torch.no_grad():
+            r = field.render(cam)
+            got = field.read_entries(cam, r.latents, r.alpha)
+            expected = _vote_reference(field, cam, r.latents, r.alpha)
+        assert torch.equal(got, expected)
+        nearest = field.codebook_indices(r.latents)
+        assert (got != nearest).any()  # the vote changes some pixels of a trained field
+        assert torch.equal(_with_decode(field, "codebook").read_entries(cam, r.latents, r.alpha), nearest)
 
 
 def _continuous(field: LanguageField) -> LanguageField:

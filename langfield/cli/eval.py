@@ -15,6 +15,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     check_writable_file(json_path.with_suffix(".md"), "Markdown summary")
     pictures = check_writable_folder(json_path.parent / (json_path.stem + "_renders"), "pictures")
     field, scene = load_field_and_scene(args.out, args.scene)
+    if args.language_decode is not None:
+        if field.codebook is None:
+            raise ValueError(f"--language-decode {args.language_decode}: {args.out} has no codebook")
+        field.language_decode = args.language_decode  # this evaluation only; the folder is unchanged
     report = evaluate(field, scene, split=args.split, save_dir=pictures, oracle=args.oracle)
     md = write_report(report, json_path, pictures)
     psnr_txt = (
@@ -66,5 +70,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="also score the queries on each view's own mask features (its feature cache): the query "
         "pipeline's ceiling, beside the field's mIoU and their ratio",
+    )
+    p.add_argument(
+        "--language-decode",
+        choices=["vote", "codebook"],
+        default=None,
+        help="read a field with a codebook this way (by vote, or as the nearest entry) instead of as its "
+        "field.json records; the reading changes nothing trained",
     )
     p.set_defaults(func=cmd_eval)

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from langfield.cli.common import add_ablation_flags, add_scene_flags, bounds_arg, scene_args
+from langfield.io.field_meta import LANGUAGE_DECODES
 
 
 def train_config(args: argparse.Namespace):
@@ -138,10 +139,11 @@ TRAIN_FLAGS = (
     ),
     _flag(
         "--language-decode",
-        choices=["codebook", "continuous"],
+        choices=list(LANGUAGE_DECODES),
         default=None,
-        help="read a rendered latent as the nearest training-mask latent of its level (codebook, the "
-        "default) or decode it as it is (continuous, the paper)",
+        help="read rendered latents through the training masks' latents: by vote among the entries of "
+        "the Gaussians at each pixel (vote, the default) or as the nearest entry (codebook); or decode "
+        "them as they are (continuous, the paper)",
     ),
     _flag(
         "--lambda-opacity",

@@ -3,8 +3,9 @@
 The report's top-level keys are fixed by docs/format.md ("Evaluation report"). Text queries are scored as
 LangSplat scores them (``eval/evaluate_iou_loc.py``): for every test view and every phrase of its
 ``segmentations/`` folder, the IoU of the query's mask with the ground truth and the localization hit,
-from relevancy maps of exactly decoded rendered latents (``field.decode_levels``: through the field's
-codebook when it has one; no lattice), pixels the field leaves empty
+from relevancy maps of exactly decoded rendered latents (a field with a codebook: the entries its
+pixels read, ``field.read_entries``, as queries read them; else ``field.decode``; no lattice), pixels the
+field leaves empty
 taken out as queries do (:func:`langfield.query.fill_empty`); mIoU and mAcc are their means over all
 (view, phrase) pairs (:func:`querying.evaluation.summarize_queries`). Metrics the scene or
 the field cannot provide (no labels, no feature cache, no language) are ``null``.
@@ -131,16 +132,27 @@ def _score_view(
     """One view of :func:`evaluate`: its record (image scores, ``queries``, ``oracle_queries`` with
     ``oracle``), its per-level feature cosine (None without a feature cache) and, with ``save``, its
     contact-sheet tiles (its PNGs and query sheet written)."""
-    out = field.render(scene.camera(name))
+    camera = scene.camera(name)
+    out = field.render(camera)
     target = torch.from_numpy(scene.image(name))
     has_cache = out.latents is not None and scene.feature_paths(name) is not None
     scored = query is not None and out.latents is not None and bool(labels)
+    # The codebook entries the pixels read, as queries read them (by vote or nearest).
+    entries = (
+        field.read_entries(camera, out.latents, out.alpha)
+        if (has_cache or scored) and field.codebook is not None
+        else None
+    )
     truth = true_features(scene, name) if has_cache else None  # read once per view
-    cosine = feature_cosine(field.decode_levels(out.latents), truth) if truth is not None else None
+    cosine = None
+    if truth is not None:
+        decoded = field.decode_levels(out.latents) if entries is None else field.decode_entries(entries)
+        cosine = feature_cosine(decoded, truth)
     queries, extra = {}, {}
     if scored:
         phrases = query.phrases
-        maps = fill_empty(query.relevancy_maps(out.latents, exact=True), out.alpha)  # [P, 3, H, W]
+        maps = query.relevancy_maps(out.latents, exact=True) if entries is None else query.entry_maps(entries)
+        maps = fill_empty(maps, out.alpha)  # [P, 3, H, W]
         queries = score_queries(maps, phrases, labels)
         if save is not None:
             write_query_sheet(save, name, out.rgb, maps, phrases, labels, queries)

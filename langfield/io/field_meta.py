@@ -21,9 +21,12 @@ from torch import Tensor
 from langfield.kernels import BACKENDS
 from langfield.model.hashgrid import HashGridConfig
 
-__all__ = ["FieldFileError", "FieldMeta", "check_field_meta", "check_tensors"]
+__all__ = ["LANGUAGE_DECODES", "FieldFileError", "FieldMeta", "check_field_meta", "check_tensors"]
 
 LANGUAGE_FEATURES = ("hashgrid", "per-gaussian")
+# How a field reads its rendered latents (``language.decode``, ``--language-decode``): by vote among
+# its codebook's entries, as the nearest entry, or decoded as they are (the paper's reading).
+LANGUAGE_DECODES = ("vote", "codebook", "continuous")
 TEXT_ENCODER_KINDS = ("table", "clip-onnx")
 
 
@@ -85,6 +88,16 @@ class FieldMeta(dict):
         """The language part's shape (features, hidden width, grid, autoencoder, codebook), or None
         for a field without language."""
         return self.get("language") or None
+
+    @property
+    def language_decode(self) -> str | None:
+        """How the field reads its rendered latents (:data:`LANGUAGE_DECODES`); None without language.
+        Fields saved before the vote reading record none: with a codebook they read the nearest entry,
+        without one they decode latents as they are."""
+        spec = self.language
+        if spec is None:
+            return None
+        return spec.get("decode") or ("codebook" if spec.get("codebook") is not None else "continuous")
 
     @property
     def train_seconds(self) -> float | None:
@@ -249,6 +262,14 @@ def check_field_meta(meta: Any, path: Path, readable: tuple[int, ...]) -> dict[s
             isinstance(sizes, list) and len(sizes) == 3 and all(_is_whole(v, 0) for v in sizes)
         ):
             c.fail("language.codebook", "null or the entry counts of the three levels ([P0, P1, P2])", sizes)
+        if "decode" in language:
+            c.choice(meta, "language.decode", LANGUAGE_DECODES)
+            if (language["decode"] == "continuous") != (sizes is None):
+                c.fail(
+                    "language.decode",
+                    "'continuous' exactly when language.codebook is null",
+                    language["decode"],
+                )
     return meta
 
 

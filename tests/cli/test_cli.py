@@ -139,6 +139,30 @@ def test_eval_oracle_prints_the_ceiling_and_refuses_a_scene_without_caches(
     assert not (tmp_path / "b.json").exists()
 
 
+def test_eval_reads_the_field_another_way_on_request(trained, scene_dir, tmp_path, capsys) -> None:
+    from langfield.eval.evaluate import evaluate
+
+    out, _, _ = trained
+    before = (out / "field.json").read_bytes()
+    args = ["eval", str(out), "--json", str(tmp_path / "c.json"), "--language-decode", "codebook"]
+    assert main(args) == 0
+    field = LanguageField.load(out)
+    assert field.language_decode == "vote"
+    field.language_decode = "codebook"
+    expected = evaluate(field, load_scene(scene_dir))
+    assert json.loads((tmp_path / "c.json").read_text())["mIoU"] == pytest.approx(expected["mIoU"])
+    assert (out / "field.json").read_bytes() == before  # the folder keeps its own reading
+    plain = LanguageField.load(out)
+    plain.codebook = None
+    plain.save(tmp_path / "plain")
+    capsys.readouterr()
+    args = ["eval", str(tmp_path / "plain"), str(scene_dir), "--json", str(tmp_path / "p.json")]
+    assert main([*args, "--language-decode", "vote"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--language-decode vote" in err[0] and "no codebook" in err[0]
+    assert not (tmp_path / "p.json").exists()
+
+
 def test_eval_finds_the_scene_recorded_in_field_json(trained, tmp_path) -> None:
     out, _, _ = trained
     assert main(["eval", str(out), "--json", str(tmp_path / "r.json")]) == 0
@@ -186,9 +210,14 @@ def test_train_language_decode_flag_reaches_the_field(scene_dir, tmp_path) -> No
     args = ["train", str(scene_dir), "--iterations", "1", "--num-gaussians", "300"]
     assert main([*args, "--out", str(tmp_path / "a"), "--language-decode", "continuous"]) == 0
     assert main([*args, "--out", str(tmp_path / "b")]) == 0
+    assert main([*args, "--out", str(tmp_path / "c"), "--language-decode", "codebook"]) == 0
     plain, default = LanguageField.load(tmp_path / "a"), LanguageField.load(tmp_path / "b")
+    nearest = LanguageField.load(tmp_path / "c")
     assert plain.meta["config"]["language_decode"] == "continuous" and plain.codebook is None
-    assert default.meta["config"]["language_decode"] == "codebook" and default.codebook is not None
+    assert plain.language_decode == "continuous"
+    assert default.meta["config"]["language_decode"] == "vote" and default.codebook is not None
+    assert default.language_decode == "vote"
+    assert nearest.language_decode == "codebook" and nearest.codebook is not None
 
 
 # ---------------------------------------------------------------- bench / demo

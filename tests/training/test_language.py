@@ -128,6 +128,34 @@ def test_save_load_keeps_language(field, scene, tmp_path):
     assert loaded.meta["language"]["features"] == field.meta["language"]["features"]
     assert all(torch.equal(x, y) for x, y in zip(field.codebook, loaded.codebook, strict=True))
     assert loaded.meta["language"]["codebook"] == [len(c) for c in field.codebook]
+    assert loaded.language_decode == field.language_decode == "vote"  # the default, recorded
+
+
+def test_the_reading_can_be_switched_and_is_saved(field, tmp_path):
+    copy = LanguageField(
+        field.splats, field.color, dict(field.meta), field.language, field.decoder, field.codebook
+    )
+    copy.language_decode = "codebook"
+    assert copy.language_decode == "codebook" and field.language_decode == "vote"  # meta not shared
+    loaded = LanguageField.load(copy.save(tmp_path / "out"))
+    assert loaded.language_decode == "codebook"
+    with pytest.raises(ValueError, match="language_decode must be one of"):
+        copy.language_decode = "mode"
+    with pytest.raises(ValueError, match="field.codebook = None"):
+        copy.language_decode = "continuous"
+    copy.codebook = None  # read continuously from here on, and saved so
+    assert copy.language_decode == "continuous"
+    with pytest.raises(ValueError, match="'vote' and 'codebook' read through a codebook"):
+        copy.language_decode = "vote"
+    assert LanguageField.load(copy.save(tmp_path / "plain")).meta["language"]["decode"] == "continuous"
+
+
+def test_a_field_saved_before_the_vote_reads_the_nearest_entry(field, tmp_path):
+    out = field.save(tmp_path / "out")
+    meta = json.loads((out / "field.json").read_text())
+    del meta["language"]["decode"]  # what fields of before the vote reading wrote
+    (out / "field.json").write_text(json.dumps(meta))
+    assert LanguageField.load(out).language_decode == "codebook"
 
 
 def test_language_off_gives_no_latents(scene):
