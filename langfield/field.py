@@ -55,8 +55,9 @@ if TYPE_CHECKING:
 
 # 2: a field may carry a codebook (``codebook.{level}`` tensors, ``language.codebook`` sizes); fields
 # of version 1 have none and load as they were.
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+# 3: a field may carry its Gaussians' registered entries (``entries``, ``language.registered``).
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 HARD_DEPTH_OPACITY = 0.99  # mu in eq. 7 (the paper; DNGaussian uses 0.95)
 
 
@@ -108,6 +109,9 @@ class LanguageField(nn.Module):
         codebook: per level, the [P_l, 3] unit latents of the training views' masks at that level; with
             one, a rendered latent is read as its nearest entry (:meth:`decode_levels`). None: decoded
             as it is (the paper's reading).
+        entries: [N, 3] long, each Gaussian's registered codebook entry per level (the training mask it
+            carries the most rendering weight on, :func:`langfield.training.aggregate.register_entries`;
+            -1: none), which the 3D selection reads (:meth:`gaussian_entries`); None: not registered.
 
     Attributes:
         folder: the folder the field was loaded from, else None.
@@ -121,6 +125,7 @@ class LanguageField(nn.Module):
         language: LanguageHeads | None = None,
         decoder: LanguageDecoder | None = None,
         codebook: Sequence[Tensor] | None = None,
+        entries: Tensor | None = None,
     ) -> None:
         super().__init__()
         self.splats = splats
@@ -129,6 +134,7 @@ class LanguageField(nn.Module):
         self.language = language
         self.decoder = decoder
         self.codebook = codebook  # checked by the setter
+        self.entries = entries  # checked by the setter
         self.folder: Path | None = None
         # The language grid may reuse the colour grid's cell look-up when both share the layout.
         self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
@@ -147,12 +153,47 @@ class LanguageField(nn.Module):
     def codebook(self, entries: Sequence[Tensor] | None) -> None:
         if entries is None:
             self._codebook = None
+            self._entries = None  # registered entries index the codebook
             return
         if self.decoder is None:
             raise ValueError("codebook: a field without a language decoder cannot read latents through one")
         if len(entries) != N_LEVELS:
             raise ValueError(f"codebook: need one entry tensor per level ({N_LEVELS}), got {len(entries)}")
         self._codebook = [check_codebook_level(c, level) for level, c in enumerate(entries)]
+
+    @property
+    def entries(self) -> Tensor | None:
+        """``[N, 3]`` long: each Gaussian's registered codebook entry per level (-1: none), or None."""
+        return self._entries
+
+    @entries.setter
+    def entries(self, value: Tensor | None) -> None:
+        if value is None:
+            self._entries = None
+            return
+        if self.codebook is None:
+            raise ValueError("entries: a field without a codebook has no entries to register Gaussians to")
+        if value.dtype != torch.long or tuple(value.shape) != (self.num_gaussians, N_LEVELS):
+            raise ValueError(
+                f"entries: expected long [{self.num_gaussians}, {N_LEVELS}], got {value.dtype} "
+                f"{tuple(value.shape)}"
+            )
+        for level, c in enumerate(self.codebook):
+            column = value[:, level]
+            if bool((column < -1).any()) or bool((column >= len(c)).any()):
+                raise ValueError(f"entries: level {level} holds indices outside -1 .. {len(c) - 1}")
+        self._entries = value
+
+    def gaussian_entries(self) -> Tensor:
+        """``[3, N]`` long: the codebook entry each Gaussian is read as in 3D (:meth:`Query.gaussians`):
+        its registered entry, else (unregistered, or a Gaussian no training view showed on a mask) the
+        nearest entry of its own latent; -1 for a zero latent."""
+        with torch.no_grad():
+            own = self.codebook_indices(self.gaussian_latents().transpose(0, 1))
+        if self._entries is None:
+            return own
+        registered = self._entries.T
+        return torch.where(registered >= 0, registered, own)
 
     @property
     def language_decode(self) -> str | None:
@@ -428,7 +469,10 @@ class LanguageField(nn.Module):
         splats = nn.ParameterDict(
             {k: nn.Parameter(v.detach()[index], requires_grad=False) for k, v in self.splats.items()}
         )
-        return LanguageField(splats, self.color, dict(self.meta), self.language, self.decoder, self.codebook)
+        entries = None if self.entries is None else self.entries[index]
+        return LanguageField(
+            splats, self.color, dict(self.meta), self.language, self.decoder, self.codebook, entries
+        )
 
     def export_ply(self, path: str | Path, index: Tensor | None = None) -> Path:
         """Writes the Gaussians (those at ``index``, default all) as a standard 3DGS PLY
@@ -465,6 +509,8 @@ class LanguageField(nn.Module):
             tensors.update({f"decoder.{k}": v for k, v in decoder_state(self.decoder).items()})
         for level, entries in enumerate(self.codebook or []):
             tensors[f"codebook.{level}"] = entries.contiguous()
+        if self.entries is not None:
+            tensors["entries"] = self.entries.contiguous()
         return tensors
 
     def save(self, out: str | Path, *, overwrite: bool = False) -> Path:
@@ -511,7 +557,12 @@ class LanguageField(nn.Module):
         meta.pop("text_table_sha256", None)
         if meta.get("language"):  # what the saved tensors hold, whatever the meta said before
             codebook = None if self.codebook is None else [int(c.shape[0]) for c in self.codebook]
-            meta["language"] = dict(meta["language"], codebook=codebook, decode=self.language_decode)
+            meta["language"] = dict(
+                meta["language"],
+                codebook=codebook,
+                decode=self.language_decode,
+                registered=self.entries is not None,
+            )
         table = self._text_table()
         if table is not None:
             shutil.copyfile(table, folder / TEXT_TABLE_FILE)
@@ -583,6 +634,9 @@ class LanguageField(nn.Module):
         sizes = (spec or {}).get("codebook")
         expected = _expected_shapes(tensors, color, language, decoder)
         expected.update({f"codebook.{level}": (size, LATENT_DIM) for level, size in enumerate(sizes or [])})
+        registered = bool((spec or {}).get("registered"))
+        if registered:
+            expected["entries"] = (expected["splats.means"][0], N_LEVELS)
         check_tensors(tensors, expected, tensors_path, meta_path)
         splats = nn.ParameterDict(
             {k.split(".", 1)[1]: nn.Parameter(v) for k, v in tensors.items() if k.startswith("splats.")}
@@ -593,8 +647,9 @@ class LanguageField(nn.Module):
         if decoder is not None:
             decoder = load_decoder(_prefixed(tensors, "decoder"), decoder.cfg)
         codebook = None if sizes is None else [tensors[f"codebook.{level}"] for level in range(len(sizes))]
+        entries = tensors["entries"] if registered else None
         try:
-            field = cls(splats, color, meta, language, decoder, codebook)
+            field = cls(splats, color, meta, language, decoder, codebook, entries)
         except ValueError as err:
             raise FieldFileError(f"{tensors_path}: {err}") from err
         field.folder = out

@@ -345,12 +345,16 @@ class _Shared:
         return self.scene.camera(key)
 
     def gaussian_relevancy(self) -> Tensor:
-        """``[Q, 3, N]`` every phrase's relevancy at each Gaussian's three latents, decoded exactly;
-        computed once."""
+        """``[Q, 3, N]`` every phrase's relevancy at each Gaussian, per level: with a codebook, of the entry
+        it is read as (:meth:`LanguageField.gaussian_entries`: its registered entry, else its latent's
+        nearest), else of its latents decoded exactly; computed once."""
         if self.gaussian_rel is None:
             with torch.no_grad():
-                latents = self.field.gaussian_latents()  # [N, 3, 3]
-                self.gaussian_rel = self.exact_relevancy(latents.transpose(0, 1))
+                if self.field.codebook is not None:
+                    self.gaussian_rel = self.entry_relevancy(self.field.gaussian_entries())
+                else:
+                    latents = self.field.gaussian_latents()  # [N, 3, 3]
+                    self.gaussian_rel = self.exact_relevancy(latents.transpose(0, 1))
         return self.gaussian_rel
 
     def gaussian_inputs(self) -> tuple[Tensor, ...]:
@@ -603,8 +607,9 @@ class Query:
     def gaussians(
         self, level: int | None = None, threshold: float = MASK_THRESHOLD
     ) -> Selection | list[Selection]:
-        """The Gaussians that match: each Gaussian's three latents decoded exactly (through the field's
-        codebook when it has one) and scored.
+        """The Gaussians that match: each Gaussian's three latents decoded exactly and scored; with a
+        codebook, each Gaussian reads as its registered entry (the training mask it carries the most
+        weight on, when training registered it) or its latent's nearest entry.
 
         As the 2D mask: the level with the highest relevancy is chosen (or ``level``), the relevancy at
         that level is min-max stretched over the Gaussians (:func:`querying.relevancy.normalize_map`)

@@ -53,6 +53,50 @@ def test_round_trip_gives_identical_tensors(field, saved) -> None:
     assert all(isinstance(p, torch.nn.Parameter) for p in loaded.splats.values())
 
 
+def test_registered_entries_survive_save_and_select_and_are_checked(field, saved) -> None:
+    assert field.entries is not None and field.entries.shape == (N, 3) and (field.entries >= 0).any()
+    loaded = LanguageField.load(saved)
+    assert torch.equal(loaded.entries, field.entries)
+    assert json.loads((saved / "field.json").read_text())["language"]["registered"] is True
+    index = torch.tensor([3, 0, 5])
+    assert torch.equal(field.select(index).entries, field.entries[index])
+    with torch.no_grad():
+        own = field.codebook_indices(field.gaussian_latents().transpose(0, 1))
+    registered = field.entries.T
+    assert torch.equal(field.gaussian_entries(), torch.where(registered >= 0, registered, own))
+    copy = LanguageField(
+        field.splats, field.color, dict(field.meta), field.language, field.decoder, field.codebook
+    )
+    assert copy.entries is None and torch.equal(copy.gaussian_entries(), own)
+    with pytest.raises(ValueError, match="expected long"):
+        copy.entries = field.entries.float()
+    with pytest.raises(ValueError, match="expected long"):
+        copy.entries = field.entries[:-1]
+    bad = field.entries.clone()
+    bad[0, 2] = len(field.codebook[2])
+    with pytest.raises(ValueError, match="level 2 holds indices outside"):
+        copy.entries = bad
+    copy.entries = field.entries
+    copy.codebook = None  # the entries index the codebook: they go with it
+    assert copy.entries is None
+    with pytest.raises(ValueError, match="without a codebook"):
+        copy.entries = field.entries
+
+
+def test_a_field_saved_before_registration_loads_without_entries(field, tmp_path) -> None:
+    copy = LanguageField(
+        field.splats, field.color, dict(field.meta), field.language, field.decoder, field.codebook
+    )
+    out = copy.save(tmp_path / "old")
+    meta = json.loads((out / "field.json").read_text())
+    meta["format_version"] = 2
+    for key in ("registered", "decode"):  # what version 2 wrote
+        del meta["language"][key]
+    (out / "field.json").write_text(json.dumps(meta))
+    loaded = LanguageField.load(out)
+    assert loaded.entries is None and loaded.language_decode == "codebook"
+
+
 def test_round_trip_gives_identical_render(field, saved, scene) -> None:
     loaded = LanguageField.load(saved)
     cam = scene.camera(scene.names("test")[0])

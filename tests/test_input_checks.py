@@ -256,6 +256,8 @@ def _set(path: str, value):
         (_set("language.codebook", [3, True, 2]), "language.codebook"),
         (_set("language.codebook", "3,2,2"), "language.codebook"),
         (_set("language.decode", "mode"), "language.decode"),
+        (_set("language.registered", "yes"), "language.registered"),
+        (_set("language.registered", False), "entries"),  # the tensors file still holds them
         (_set("language.decode", "continuous"), "language.decode"),  # the field has a codebook
         (_set("text_encoder", {"kind": "magic"}), "text_encoder.kind"),
         (_set("scene_args", "fast"), "scene_args"),

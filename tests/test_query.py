@@ -258,12 +258,18 @@ def test_codebook_look_up_equals_decoding_the_nearest_entry(field, scene) -> Non
 
 
 def test_3d_selection_reads_each_gaussian_through_the_codebook(field) -> None:
+    """Each Gaussian reads as its registered entry, else as its latent's nearest entry (by angle)."""
+    assert field.entries is not None and (field.entries >= 0).any() and (field.entries < 0).any()
     q = field.query(["sofa", "lamp"])
     with torch.no_grad():
         latents = field.gaussian_latents().transpose(0, 1)  # [3, N, 3]
+        snapped = _snapped(field, latents)
+        for level, entries in enumerate(field.codebook):
+            registered = field.entries[:, level] >= 0
+            snapped[level][registered] = entries[field.entries[registered, level]]
         enc = TableTextEncoder(field.folder / TEXT_TABLE_FILE)
         emb = torch.from_numpy(enc.encode_text(["sofa", "lamp", *CANONICAL_PHRASES]))
-        rel = relevancy(field.decoder.decode(_snapped(field, latents)), emb[:2], emb[2:])  # [2, 3, N]
+        rel = relevancy(field.decoder.decode(snapped), emb[:2], emb[2:])  # [2, 3, N]
     for k, selection in enumerate(q.gaussians()):
         torch.testing.assert_close(
             selection.scores, rel[k, selection.level, selection.indices], atol=1e-5, rtol=0

@@ -262,6 +262,10 @@ def check_field_meta(meta: Any, path: Path, readable: tuple[int, ...]) -> dict[s
             isinstance(sizes, list) and len(sizes) == 3 and all(_is_whole(v, 0) for v in sizes)
         ):
             c.fail("language.codebook", "null or the entry counts of the three levels ([P0, P1, P2])", sizes)
+        if not isinstance(language.get("registered", False), bool):
+            c.fail("language.registered", "true or false", language.get("registered"))
+        if language.get("registered") and sizes is None:
+            c.fail("language.registered", "false for a field without a codebook", True)
         if "decode" in language:
             c.choice(meta, "language.decode", LANGUAGE_DECODES)
             if (language["decode"] == "continuous") != (sizes is None):

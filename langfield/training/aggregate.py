@@ -1,5 +1,7 @@
 """Training-free language: each Gaussian's latents as the rendering-weighted mean of the training views'
-mask latents (Occam's LGS, Cheng et al. 2024, and Dr.Splat aggregate features onto Gaussians this way).
+mask latents (Occam's LGS, Cheng et al. 2024, and Dr.Splat aggregate features onto Gaussians this way),
+and each Gaussian's registered entry, the training mask it carries the most weight on
+(:func:`register_entries`, which the trainer runs at its end for the 3D selection).
 
 A rendered channel is ``L(p) = sum_i w_i(p) c_i`` over the Gaussians i at pixel p, so the gradient of
 ``sum_p <L(p), t(p)>`` with respect to ``c_i`` is ``sum_p w_i(p) t(p)``: one forward and backward pass
@@ -21,8 +23,16 @@ from torch import Tensor, nn
 
 from langfield.camera import Camera
 from langfield.field import LANGUAGE_CHANNELS, LanguageField
+from langfield.model import gaussians as G
+from langfield.raster import rasterize
 
-__all__ = ["aggregate_latents", "with_latents"]
+__all__ = ["MIN_REGISTER_WEIGHT", "aggregate_latents", "register_entries", "with_latents"]
+
+# A Gaussian whose rendering weight on a level's masked training pixels sums to less than this (a
+# thousandth of one pixel) is left unregistered at that level (-1).
+MIN_REGISTER_WEIGHT = 1e-3
+# Floats of one pass's [H, W, C] weights and [N, C] gradient in register_entries (64 MiB).
+REGISTER_CHUNK_VALUES = 1 << 24
 
 
 def with_latents(field: LanguageField, latents: Tensor) -> LanguageField:
@@ -82,3 +92,69 @@ def aggregate_latents(
     mean = total.reshape(n, 3, 3)
     norm = mean.norm(dim=-1, keepdim=True)
     return torch.where(norm > 0, mean / norm.clamp_min(1e-12), torch.zeros_like(mean)), weight
+
+
+def register_entries(
+    field: LanguageField,
+    cameras: Mapping[str, Camera],
+    entries: Mapping[str, Tensor],
+    sizes: list[int],
+    backend: str = "auto",
+    min_weight: float = MIN_REGISTER_WEIGHT,
+    chunk_values: int = REGISTER_CHUNK_VALUES,
+) -> Tensor:
+    """Every Gaussian's entry at each level: the training mask it carries the most rendering weight on.
+
+    The mode of the masks under a Gaussian, not their mean: a Gaussian on the edge between a lamp post
+    and a wall is the lamp's or the wall's, where the mean of their latents can be nearest to a third
+    concept (the same reason as the vote of :mod:`langfield.reading`). Per level, the weight a Gaussian
+    carries on the pixels of entry e is the gradient of ``sum_p <render(p), [entry(p) = e]>`` with
+    respect to a one-hot channel of that Gaussian (module docstring); entries go in chunks of channels.
+
+    Args:
+        field: the Gaussians (their language is not used).
+        cameras: view name -> camera.
+        entries: view name -> ``[L, H, W]`` long, the codebook entry of each pixel's mask at each level
+            (-1: no mask).
+        sizes: the number of entries of each level.
+        min_weight: a Gaussian with less weight than this on a level's masked pixels gets -1 there.
+
+    Returns:
+        ``[N, L]`` long: per Gaussian and level the entry with the most weight (ties: the lower entry),
+        or -1.
+    """
+    missing = [name for name in cameras if name not in entries]
+    if missing:
+        raise ValueError(f"register_entries: no mask entries for views {missing}")
+    n, levels = field.num_gaussians, len(sizes)
+    best_weight = torch.zeros(n, levels)
+    best = torch.full((n, levels), -1, dtype=torch.long)
+    total = torch.zeros(n, levels)
+    splats = field.splats
+    with torch.no_grad():
+        geometry = (
+            splats["means"].detach(),
+            splats["quats"].detach(),
+            G.scales(splats).detach(),
+            G.opacities(splats).reshape(-1).detach(),
+        )
+    slots = [(level, e) for level in range(levels) for e in range(sizes[level])]
+    pixels = max([c.width * c.height for c in cameras.values()] + [1])
+    step = max(1, chunk_values // max(n, pixels))
+    for start in range(0, len(slots) if n else 0, step):
+        chunk = slots[start : start + step]
+        weight = torch.zeros(n, len(chunk))
+        for name, cam in cameras.items():
+            goal = torch.stack([(entries[name][level] == e).float() for level, e in chunk], dim=-1)
+            if not bool(goal.any()):
+                continue
+            probe = torch.zeros(n, len(chunk), requires_grad=True)
+            image = rasterize(*geometry, probe, cam, backend=backend).image
+            (grad,) = torch.autograd.grad(image, [probe], grad_outputs=goal)
+            weight += grad
+        for c, (level, e) in enumerate(chunk):
+            better = weight[:, c] > best_weight[:, level]  # strictly: a tie keeps the lower entry
+            best_weight[:, level] = torch.where(better, weight[:, c], best_weight[:, level])
+            best[:, level] = torch.where(better, e, best[:, level])
+            total[:, level] += weight[:, c]
+    return torch.where(total >= min_weight, best, -1)

@@ -51,6 +51,7 @@ from langfield.model.language import (
     mask_balance,
 )
 from langfield.raster import resolve_backend
+from langfield.training.aggregate import register_entries
 from langfield.training.initialisation import INIT_METHODS, StartPoints, start_points
 from langfield.training.lad import LAMBDA_SA, LADTarget, depth_loss
 from langfield.training.lop import LOP_GAMMA, LOP_INTERVAL, LOP_TAU, lop_prune
@@ -681,6 +682,7 @@ def _language_parts(
         "autoencoder_stats": targets.stats,
         "codebook": None if codebook is None else [int(c.shape[0]) for c in codebook],
         "decode": cfg.language_decode,
+        "registered": False,  # until training registers each Gaussian to its masks (train's end)
     }
     return language, decoder, codebook, language_meta
 
@@ -981,6 +983,21 @@ def _update(run: _Run, step: int, out: Render, cam: Camera, bar: tqdm) -> None:
         )
 
 
+def registered_entries(
+    field: LanguageField, cameras: dict[str, Camera], targets: LanguageTargets
+) -> torch.Tensor:
+    """``[N, 3]`` each Gaussian's codebook entry per level: the training mask it carries the most
+    rendering weight on (:func:`~langfield.training.aggregate.register_entries`), which the 3D
+    selection reads. Rooms, 3 layouts x 3 seeds: 3D precision 0.625 -> 0.733, recall 0.854 -> 0.877
+    against each Gaussian's own latent (docs/figures.md, "Registered entries")."""
+    entries = {}
+    for name in cameras:
+        nearest = field.codebook_indices(targets.latents[name])
+        entries[name] = torch.where(targets.valid[name], nearest, -1)
+    sizes = [len(c) for c in field.codebook]
+    return register_entries(field, cameras, entries, sizes, backend=field.meta.backend)
+
+
 def train(
     scene: Scene,
     cfg: TrainConfig | None = None,
@@ -1029,6 +1046,12 @@ def train(
         ):
             callback(step + 1, train_seconds, field)
     bar.close()
+    if field.codebook is not None and run.targets is not None:
+        # After the iterations and timed apart: train_seconds and iterations_per_second stay the loop's.
+        t0 = time.perf_counter()
+        field.entries = registered_entries(field, run.cameras, run.targets)
+        seconds = round(time.perf_counter() - t0, 3)
+        field.meta["language"] = dict(field.meta["language"], registered=True, register_seconds=seconds)
     field.meta.update(
         carved={"removed": sum(c["removed"] for c in run.carved), "rounds": len(run.carved)}
         if run.stereo

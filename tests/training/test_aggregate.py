@@ -6,7 +6,12 @@ import pytest
 import torch
 
 from langfield import TrainConfig, load_scene
-from langfield.training.aggregate import aggregate_latents, with_latents
+from langfield.training.aggregate import (
+    MIN_REGISTER_WEIGHT,
+    aggregate_latents,
+    register_entries,
+    with_latents,
+)
 from langfield.training.trainer import build_field, language_targets
 
 W, H = 40, 30
@@ -107,3 +112,66 @@ def test_no_gaussians_and_a_view_without_targets(field, scene) -> None:
     assert latents.shape == (0, 3, 3) and weight.shape == (0, 3)
     with pytest.raises(ValueError, match="no target latents for views"):
         aggregate_latents(field, {"elsewhere": scene.camera(name)}, targets.latents, targets.valid)
+
+
+def _random_entries(scene, names, sizes, seed=0) -> dict[str, torch.Tensor]:
+    """Per view [L, H, W]: each pixel a random entry of its level, or -1 (no mask); blocks of 10 x 10
+    pixels, so that masks cover several pixels as segments do."""
+    g = torch.Generator().manual_seed(seed)
+    out = {}
+    for name in names:
+        cam = scene.camera(name)
+        levels = []
+        for size in sizes:
+            coarse = torch.randint(-1, size, (cam.height // 10 + 1, cam.width // 10 + 1), generator=g)
+            levels.append(coarse.repeat_interleave(10, 0).repeat_interleave(10, 1)[: cam.height, : cam.width])
+        out[name] = torch.stack(levels)
+    return out
+
+
+@pytest.mark.parametrize("chunk_values", [1, 40 * 30 * 3, 1 << 24])
+def test_registered_entries_are_the_masks_with_the_most_weight(field, scene, chunk_values) -> None:
+    """Against each Gaussian's weight per pixel from forward renders: per entry the summed weight, the
+    entry with the most (the first of equal ones), -1 below MIN_REGISTER_WEIGHT; entries in chunks of
+    one channel, of three, and all at once."""
+    names = scene.names("train")
+    cameras = {n: scene.camera(n) for n in names}
+    sizes = [4, 3, 0]  # the whole level has no entries
+    entries = _random_entries(scene, names, sizes)
+    got = register_entries(field, cameras, entries, sizes, chunk_values=chunk_values)
+    assert got.shape == (field.num_gaussians, 3) and got.dtype == torch.long
+    per_entry = [torch.zeros(field.num_gaussians, size) for size in sizes]
+    for name in names:
+        w = _weights_by_forward_passes(field, cameras[name])  # [N, H, W]
+        for level, size in enumerate(sizes):
+            for e in range(size):
+                per_entry[level][:, e] += (w * (entries[name][level] == e)).sum(dim=(1, 2))
+    for level, size in enumerate(sizes):
+        if size == 0:
+            assert (got[:, level] == -1).all()
+            continue
+        total = per_entry[level].sum(dim=1)
+        expected = torch.where(total >= MIN_REGISTER_WEIGHT, per_entry[level].argmax(dim=1), -1)
+        assert torch.equal(got[:, level], expected)
+        assert int((expected >= 0).sum()) >= 5 and len(torch.unique(expected[expected >= 0])) >= 2
+
+
+def test_registration_leaves_unseen_gaussians_and_empty_fields_out(field, scene) -> None:
+    name = scene.names("train")[0]
+    cam = scene.camera(name)
+    hidden = build_field(scene, TrainConfig(num_gaussians=24, init="random"))
+    with torch.no_grad():  # one Gaussian behind the camera, one exactly at its centre
+        hidden.splats["means"][0] = torch.from_numpy(cam.c2w[:3, 3] - cam.forward).float()
+        hidden.splats["means"][1] = torch.from_numpy(cam.c2w[:3, 3]).float()
+    entries = _random_entries(scene, [name], [2, 2, 2])
+    entries[name][1] = -1  # no masks at the part level
+    got = register_entries(hidden, {name: cam}, entries, [2, 2, 2])
+    assert (got[:2] == -1).all() and (got[:, 1] == -1).all()
+    keep = torch.zeros(field.num_gaussians, dtype=torch.bool)
+    empty = with_latents(field, torch.zeros(field.num_gaussians, 3, 3))
+    empty.splats = torch.nn.ParameterDict(
+        {k: torch.nn.Parameter(v.detach()[keep]) for k, v in empty.splats.items()}
+    )
+    assert register_entries(empty, {name: cam}, entries, [2, 2, 2]).shape == (0, 3)
+    with pytest.raises(ValueError, match="no mask entries for views"):
+        register_entries(field, {"elsewhere": cam}, entries, [2, 2, 2])

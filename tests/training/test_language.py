@@ -10,6 +10,7 @@ import torch
 
 from langfield import LanguageField, TrainConfig, load_scene, train
 from langfield.model.language import language_loss, mask_balance
+from langfield.training.aggregate import register_entries
 from langfield.training.trainer import language_targets
 
 GEOMETRY = ("means", "log_scales", "quats", "opacity_logits")
@@ -129,6 +130,21 @@ def test_save_load_keeps_language(field, scene, tmp_path):
     assert all(torch.equal(x, y) for x, y in zip(field.codebook, loaded.codebook, strict=True))
     assert loaded.meta["language"]["codebook"] == [len(c) for c in field.codebook]
     assert loaded.language_decode == field.language_decode == "vote"  # the default, recorded
+    assert torch.equal(loaded.entries, field.entries) and loaded.meta["language"]["registered"] is True
+
+
+def test_training_registers_each_gaussian_to_the_masks_of_its_weight(field, scene):
+    """The trainer's registration: the training views' target latents, each read as its codebook
+    entry (-1 off the masks), then register_entries; recomputed here from the same targets."""
+    targets = language_targets(scene, TrainConfig(**field.meta["config"]), progress=False)
+    cameras = {n: scene.camera(n) for n in scene.names("train")}
+    entries = {}
+    for name in cameras:
+        index = field.codebook_indices(targets.latents[name])
+        entries[name] = torch.where(targets.valid[name], index, -1)
+    expected = register_entries(field, cameras, entries, [len(c) for c in field.codebook])
+    assert torch.equal(field.entries, expected)
+    assert (expected >= 0).float().mean() > 0.5
 
 
 def test_the_reading_can_be_switched_and_is_saved(field, tmp_path):
@@ -328,6 +344,7 @@ def test_continuous_reading_keeps_no_codebook(scene, tmp_path):
     )
     f = train(scene, cfg, progress=False)
     assert f.codebook is None and f.meta["language"]["codebook"] is None
+    assert f.entries is None and f.meta["language"]["registered"] is False
     loaded = LanguageField.load(f.save(tmp_path / "out"))
     assert loaded.codebook is None
     z = torch.randn(3, 4, 3, generator=torch.Generator().manual_seed(1))
