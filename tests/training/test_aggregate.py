@@ -71,14 +71,20 @@ def test_the_gradient_pass_equals_the_weighted_sums_of_forward_renders(field, sc
     assert torch.allclose(latents[seen].norm(dim=-1), torch.ones(int(seen.sum())), atol=1e-5)
 
 
+def _hidden_field(scene, cam):
+    """A field whose Gaussian 0 lies behind ``cam`` and Gaussian 1 exactly at its centre."""
+    hidden = build_field(scene, TrainConfig(num_gaussians=24, init="random"))
+    with torch.no_grad():
+        hidden.splats["means"][0] = torch.from_numpy(cam.c2w[:3, 3] - cam.forward).float()
+        hidden.splats["means"][1] = torch.from_numpy(cam.c2w[:3, 3]).float()
+    return hidden
+
+
 def test_a_gaussian_no_view_sees_and_a_level_without_masks_give_zero(field, scene) -> None:
     targets = _targets(scene)
     name = scene.names("train")[0]
     cam = scene.camera(name)
-    hidden = build_field(scene, TrainConfig(num_gaussians=24, init="random"))
-    with torch.no_grad():  # one Gaussian behind the camera, one exactly at its centre
-        hidden.splats["means"][0] = torch.from_numpy(cam.c2w[:3, 3] - cam.forward).float()
-        hidden.splats["means"][1] = torch.from_numpy(cam.c2w[:3, 3]).float()
+    hidden = _hidden_field(scene, cam)
     valid = {name: targets.valid[name].clone()}
     valid[name][1] = False  # no masks at the part level
     latents, weight = aggregate_latents(hidden, {name: cam}, targets.latents, valid)
@@ -159,10 +165,7 @@ def test_registered_entries_are_the_masks_with_the_most_weight(field, scene, chu
 def test_registration_leaves_unseen_gaussians_and_empty_fields_out(field, scene) -> None:
     name = scene.names("train")[0]
     cam = scene.camera(name)
-    hidden = build_field(scene, TrainConfig(num_gaussians=24, init="random"))
-    with torch.no_grad():  # one Gaussian behind the camera, one exactly at its centre
-        hidden.splats["means"][0] = torch.from_numpy(cam.c2w[:3, 3] - cam.forward).float()
-        hidden.splats["means"][1] = torch.from_numpy(cam.c2w[:3, 3]).float()
+    hidden = _hidden_field(scene, cam)
     entries = _random_entries(scene, [name], [2, 2, 2])
     entries[name][1] = -1  # no masks at the part level
     got = register_entries(hidden, {name: cam}, entries, [2, 2, 2])
