@@ -129,11 +129,15 @@ def selection_scores(
     Each whole-level object of the scene's ``gt/primitives.json`` is queried by its name. The object's
     Gaussians are those whose centre's nearest true surface is one of the object's, within
     ``tolerance`` x the bounds' diagonal (OpenGaussian and Dr.Splat score 3D queries against the
-    objects' geometry the same way). Precision: the fraction of the selected Gaussians that are the
-    object's (0 for an empty selection); recall: the fraction of the object's Gaussians selected.
-    Surface precision: the same fraction of the selected Gaussians that lie on some surface, so that it
-    scores the language alone; the Gaussians farther than the tolerance from every surface (a matter of
-    geometry: no choice of latents puts them on an object) are counted apart, ``off_surface``.
+    objects' geometry the same way). Surfaces another primitive covers (the floor under the rug, 1 cm
+    below its top) do not count: a Gaussian on the rug is the rug's
+    (:func:`langfield.synthetic.ground_truth.uncovered_triangles`).
+
+    Precision: the fraction of the selected Gaussians that are the object's (0 for an empty
+    selection); recall: the fraction of the object's Gaussians selected. Surface precision: the same
+    fraction of the selected Gaussians that lie on some surface, so that it scores the language alone;
+    the Gaussians farther than the tolerance from every surface (a matter of geometry: no choice of
+    latents puts them on an object) are counted apart, ``off_surface``.
     ``text_encoder`` embeds the object names (default the field's own; see ``LanguageField.query``).
 
     Returns:
@@ -150,7 +154,7 @@ def selection_scores(
     bounds = field.meta.bounds
     tol = float(tolerance * np.linalg.norm(bounds[1] - bounds[0]))
     means = field.splats["means"].detach().numpy()
-    objects, dist = distances_to_objects(scene.root, means, level="whole")
+    objects, dist = distances_to_objects(scene.root, means, level="whole", uncovered=True)
     owner = np.where(dist.min(axis=0) <= tol, dist.argmin(axis=0), -1) if len(means) else np.zeros(0, int)
     selections = field.query(objects, text_encoder, scene=scene).gaussians()
     per_object: dict[str, dict[str, float | int | None]] = {}

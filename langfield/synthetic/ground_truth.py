@@ -57,10 +57,13 @@ def distance_to_surfaces(
 
 
 def distances_to_objects(
-    scene_dir: str | Path, points: np.ndarray, level: str = "whole"
+    scene_dir: str | Path, points: np.ndarray, level: str = "whole", uncovered: bool = False
 ) -> tuple[list[str], np.ndarray]:
     """Unsigned distance from each point to each object's true surface, the objects being the labels
     of one level (e.g. every whole-level object: "sofa", "mug", ...).
+
+    With ``uncovered`` only the surface no other primitive covers counts (:func:`uncovered_triangles`):
+    a point on the rug, 1 cm above the floor, is then nearest to the rug, not to the floor under it.
 
     Returns:
         (the labels, sorted; [K, N] float32 distances, row k to the primitives labelled k).
@@ -72,6 +75,18 @@ def distances_to_objects(
     records = json.loads((gt / "primitives.json").read_text())
     mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
     labels = sorted({r["labels"][level] for r in records})
+    if uncovered:
+        surfaces = uncovered_triangles(scene_dir)
+        rows = [
+            _soup_distances(
+                np.concatenate(
+                    [t for t, r in zip(surfaces, records, strict=True) if r["labels"][level] == k]
+                ),
+                pts,
+            )
+            for k in labels
+        ]
+        return labels, np.stack(rows) if rows else np.zeros((0, len(pts)), np.float32)
     rows = [
         _distances(
             mesh,
@@ -81,6 +96,71 @@ def distances_to_objects(
         for k in labels
     ]
     return labels, np.stack(rows) if rows else np.zeros((0, len(pts)), np.float32)
+
+
+# A surface point this close to another primitive's surface is covered by it: a contact face (the floor
+# under the rug or the sofa, a table top under a book, a box face inside a wall) that no camera sees.
+COVER_DISTANCE = 0.002
+# The longest edge of the pieces each triangle is cut into to find its covered part (scene units).
+COVER_STEP = 0.025
+
+
+def uncovered_triangles(scene_dir: str | Path) -> list[np.ndarray]:
+    """Per primitive of ``gt/primitives.json``, ``[M, 3, 3]`` float32: its surface less the part within
+    :data:`COVER_DISTANCE` of another primitive's surface (covered, see there). A triangle that comes
+    near another primitive is first cut into pieces of edges up to :data:`COVER_STEP`, and each piece is
+    kept or dropped by its centre."""
+    gt = Path(scene_dir) / "gt"
+    records = json.loads((gt / "primitives.json").read_text())
+    mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
+    corners = np.asarray(mesh.vertices, dtype=np.float32)[np.asarray(mesh.triangles)]  # [T, 3, 3]
+    lows = np.array([r["aabb"][0] for r in records]) - COVER_DISTANCE
+    highs = np.array([r["aabb"][1] for r in records]) + COVER_DISTANCE
+    out = []
+    for i, record in enumerate(records):
+        tris = corners[slice(*record["triangles"])]
+        # [T_i, P]: the triangle's box meets another primitive's (grown by COVER_DISTANCE).
+        near = (tris.min(axis=1)[:, None] <= highs[None]).all(-1) & (
+            tris.max(axis=1)[:, None] >= lows[None]
+        ).all(-1)
+        near[:, i] = False
+        touching = near.any(axis=1)
+        cut, parent = _subdivide(tris[touching], COVER_STEP)
+        centres = cut.mean(axis=1)
+        covered = np.zeros(len(cut), dtype=bool)
+        for j in np.flatnonzero(near.any(axis=0)):
+            inside = np.flatnonzero(((centres >= lows[j]) & (centres <= highs[j])).all(axis=1))
+            if len(inside):  # only centres inside the other primitive's box can lie that close to it
+                gap = _distances(mesh, np.arange(*records[j]["triangles"]), centres[inside])
+                covered[inside[gap <= COVER_DISTANCE]] = True
+        hit = np.zeros(int(touching.sum()), dtype=bool)  # a triangle none of whose pieces is covered
+        hit[parent[covered]] = True  # stays whole
+        out.append(np.concatenate([tris[~touching], tris[touching][~hit], cut[~covered & hit[parent]]]))
+    return out
+
+
+def _subdivide(triangles: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """``[T, 3, 3]`` triangles -> ``[M, 3, 3]`` pieces and ``[M]`` the index of each piece's triangle:
+    each cut into n x n similar triangles, n the smallest count that makes every edge at most
+    ``step``."""
+    pieces, parents = [], []
+    for k, (a, b, c) in enumerate(triangles):
+        longest = max(np.linalg.norm(b - a), np.linalg.norm(c - a), np.linalg.norm(c - b))
+        n = max(1, int(np.ceil(longest / step)))
+        steps = np.arange(n + 1)
+        grid = (
+            a + steps[:, None, None] * ((b - a) / n) + steps[None, :, None] * ((c - a) / n)
+        )  # [n+1, n+1, 3]
+        i, j = (g.ravel() for g in np.meshgrid(np.arange(n), np.arange(n), indexing="ij"))
+        up = i + j <= n - 1  # corners (i, j), (i + 1, j), (i, j + 1)
+        down = i + j <= n - 2  # corners (i + 1, j), (i + 1, j + 1), (i, j + 1)
+        iu, ju, id_, jd = i[up], j[up], i[down], j[down]
+        pieces.append(np.stack([grid[iu, ju], grid[iu + 1, ju], grid[iu, ju + 1]], axis=1))
+        pieces.append(np.stack([grid[id_ + 1, jd], grid[id_ + 1, jd + 1], grid[id_, jd + 1]], axis=1))
+        parents.append(np.full(int(up.sum() + down.sum()), k))
+    if not pieces:
+        return np.zeros((0, 3, 3), np.float32), np.zeros(0, np.int64)
+    return np.concatenate(pieces).astype(np.float32), np.concatenate(parents)
 
 
 def _check_points(points: np.ndarray, who: str) -> np.ndarray:
@@ -97,6 +177,17 @@ def _distances(mesh: o3d.geometry.TriangleMesh, triangles: np.ndarray | None, pt
         mesh = o3d.geometry.TriangleMesh(mesh.vertices, chosen)
     raycaster = o3d.t.geometry.RaycastingScene()
     raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float32)
+
+
+def _soup_distances(triangles: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """[N] float32 distance from ``pts`` to ``triangles`` ``[T, 3, 3]`` (inf when there are none)."""
+    if len(triangles) == 0:
+        return np.full(len(pts), np.inf, np.float32)
+    raycaster = o3d.t.geometry.RaycastingScene()
+    vertices = o3d.core.Tensor(triangles.reshape(-1, 3).astype(np.float32))
+    indices = o3d.core.Tensor(np.arange(3 * len(triangles), dtype=np.uint32).reshape(-1, 3))
+    raycaster.add_triangles(vertices, indices)
     return raycaster.compute_distance(o3d.core.Tensor(pts)).numpy().astype(np.float32)
 
 

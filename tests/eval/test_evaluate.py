@@ -21,6 +21,7 @@ from langfield import LanguageField, TrainConfig, evaluate, load_scene
 from langfield.eval.evaluate import write_report
 from langfield.eval.geometry import selection_scores
 from langfield.io.field_meta import FieldMeta
+from langfield.synthetic.ground_truth import uncovered_triangles
 from langfield.training.trainer import build_field, scene_bounds
 
 W, H = 64, 48
@@ -236,10 +237,15 @@ class _SelectionField:
 
 
 def _surface_points(scene_dir: Path, whole: str, n: int, seed: int) -> np.ndarray:
+    """``n`` points on the object's surface that no other part covers (where a camera can see it)."""
     records = json.loads((scene_dir / "gt" / "primitives.json").read_text())
-    mesh = o3d.io.read_triangle_mesh(str(scene_dir / "gt" / "mesh.ply"))
-    keep = np.concatenate([np.arange(*r["triangles"]) for r in records if r["labels"]["whole"] == whole])
-    mesh.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.triangles)[keep])
+    surfaces = uncovered_triangles(scene_dir)
+    mine = [t for t, r in zip(surfaces, records, strict=True) if r["labels"]["whole"] == whole]
+    tris = np.concatenate(mine)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(tris.reshape(-1, 3).astype(np.float64)),
+        o3d.utility.Vector3iVector(np.arange(3 * len(tris)).reshape(-1, 3)),
+    )
     o3d.utility.random.seed(seed)
     return np.asarray(mesh.sample_points_uniformly(n).points)
 

@@ -23,7 +23,13 @@ from langfield.synthetic import (
     make_room,
     room_layout,
 )
-from langfield.synthetic.room import room_primitives
+from langfield.synthetic.ground_truth import (
+    COVER_STEP,
+    _subdivide,
+    uncovered_triangles,
+    write_ground_truth_mesh,
+)
+from langfield.synthetic.room import Primitive, _box, room_primitives
 
 W, H = 64, 48
 LAYOUT_0_DIGEST = "0d235cc9e5aa1df1"
@@ -212,6 +218,46 @@ def test_distances_to_objects_equal_the_labelled_distances(scene: Path) -> None:
     np.testing.assert_allclose(dist.min(axis=0), distance_to_surfaces(scene, points), atol=1e-6)
     with pytest.raises(ValueError, match="level"):
         distances_to_objects(scene, points, level="room")
+
+
+def _area(triangles: np.ndarray) -> float:
+    cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    return float(np.linalg.norm(cross, axis=1).sum() / 2)
+
+
+def test_subdividing_keeps_the_area_and_bounds_the_edges() -> None:
+    tri = np.array(
+        [[[0, 0, 0], [1.0, 0, 0], [0, 0.3, 0.2]], [[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]]], np.float32
+    )
+    pieces, parent = _subdivide(tri, 0.1)
+    assert _area(pieces) == pytest.approx(_area(tri), rel=1e-5)
+    edges = np.linalg.norm(pieces - np.roll(pieces, 1, axis=1), axis=2)
+    assert edges.max() <= 0.1 + 1e-6
+    assert (parent == 1).sum() == 1  # a small triangle stays one piece
+    assert _area(pieces[parent == 0]) == pytest.approx(_area(tri[:1]), rel=1e-5)
+
+
+def test_the_floor_under_the_rug_is_covered_and_a_point_in_the_rug_is_the_rugs(tmp_path) -> None:
+    (tmp_path / "gt").mkdir()
+    look = ((0.5, 0.5, 0.5), "plain")
+    prims = [
+        Primitive(_box((4.0, 4.0, 0.05), (0.0, 0.0, -0.025)), ("floor",) * 3, *look),
+        Primitive(_box((2.0, 1.0, 0.01), (0.0, 0.0, 0.005)), ("rug",) * 3, *look),
+    ]
+    write_ground_truth_mesh(tmp_path / "gt", prims)
+    floor, rug = uncovered_triangles(tmp_path)
+    floor_area = 2 * 16 + 4 * 4 * 0.05
+    assert _area(floor) == pytest.approx(floor_area - 2.0, abs=4 * COVER_STEP)  # less the rug's footprint
+    rug_area = 2 * 2.0 + 2 * (2.0 + 1.0) * 0.01
+    assert rug_area - 2.0 - 0.3 * 0.06 < _area(rug) < rug_area - 2.0  # no bottom, the sides' feet gone
+    points = np.array([[0.3, 0.2, 0.004], [1.5, 0.0, 0.001]])  # inside the rug, 4 mm up; beside it
+    labels, plain = distances_to_objects(tmp_path, points)
+    _, seen = distances_to_objects(tmp_path, points, uncovered=True)
+    assert labels == ["floor", "rug"]
+    assert plain[:, 0].argmin() == 0  # nearest to the floor under the rug...
+    assert seen[:, 0].argmin() == 1 and seen[1, 0] == pytest.approx(0.006, abs=1e-4)  # ...which is hidden
+    assert seen[0, 0] == pytest.approx(0.054, abs=1e-4)  # the nearest uncovered floor: the slab's underside
+    assert plain[:, 1].argmin() == seen[:, 1].argmin() == 0
 
 
 def test_text_embeddings_hold_labels_synonyms_and_canonical_phrases(scene: Path) -> None:
