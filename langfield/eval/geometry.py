@@ -129,9 +129,10 @@ def selection_scores(
     Each whole-level object of the scene's ``gt/primitives.json`` is queried by its name. The object's
     Gaussians are those whose centre's nearest true surface is one of the object's, within
     ``tolerance`` x the bounds' diagonal (OpenGaussian and Dr.Splat score 3D queries against the
-    objects' geometry the same way). Surfaces another primitive covers (the floor under the rug, 1 cm
-    below its top) do not count: a Gaussian on the rug is the rug's
-    (:func:`langfield.synthetic.ground_truth.uncovered_triangles`).
+    objects' geometry the same way). Only surfaces a camera could see count
+    (:func:`langfield.synthetic.ground_truth.uncovered_triangles`): not those another primitive covers
+    (the floor under the rug, 1 cm below its top: a Gaussian on the rug is the rug's), nor faces turned
+    away from every camera of the scene (the floor slab's underside, 5 cm under the floor).
 
     Precision: the fraction of the selected Gaussians that are the object's (0 for an empty
     selection); recall: the fraction of the object's Gaussians selected. Surface precision: the same
@@ -154,7 +155,10 @@ def selection_scores(
     bounds = field.meta.bounds
     tol = float(tolerance * np.linalg.norm(bounds[1] - bounds[0]))
     means = field.splats["means"].detach().numpy()
-    objects, dist = distances_to_objects(scene.root, means, level="whole", uncovered=True)
+    viewpoints = np.stack([cam.center for cam in scene.cameras("all")])
+    objects, dist = distances_to_objects(
+        scene.root, means, level="whole", uncovered=True, viewpoints=viewpoints
+    )
     owner = np.where(dist.min(axis=0) <= tol, dist.argmin(axis=0), -1) if len(means) else np.zeros(0, int)
     selections = field.query(objects, text_encoder, scene=scene).gaussians()
     per_object: dict[str, dict[str, float | int | None]] = {}

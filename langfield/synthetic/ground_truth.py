@@ -57,13 +57,18 @@ def distance_to_surfaces(
 
 
 def distances_to_objects(
-    scene_dir: str | Path, points: np.ndarray, level: str = "whole", uncovered: bool = False
+    scene_dir: str | Path,
+    points: np.ndarray,
+    level: str = "whole",
+    uncovered: bool = False,
+    viewpoints: np.ndarray | None = None,
 ) -> tuple[list[str], np.ndarray]:
     """Unsigned distance from each point to each object's true surface, the objects being the labels
     of one level (e.g. every whole-level object: "sofa", "mug", ...).
 
     With ``uncovered`` only the surface no other primitive covers counts (:func:`uncovered_triangles`):
-    a point on the rug, 1 cm above the floor, is then nearest to the rug, not to the floor under it.
+    a point on the rug, 1 cm above the floor, is then nearest to the rug, not to the floor under it;
+    with ``viewpoints`` too, only the faces that face one of them.
 
     Returns:
         (the labels, sorted; [K, N] float32 distances, row k to the primitives labelled k).
@@ -76,7 +81,7 @@ def distances_to_objects(
     mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
     labels = sorted({r["labels"][level] for r in records})
     if uncovered:
-        surfaces = uncovered_triangles(scene_dir)
+        surfaces = uncovered_triangles(scene_dir, viewpoints)
         rows = [
             _soup_distances(
                 np.concatenate(
@@ -105,11 +110,13 @@ COVER_DISTANCE = 0.002
 COVER_STEP = 0.025
 
 
-def uncovered_triangles(scene_dir: str | Path) -> list[np.ndarray]:
+def uncovered_triangles(scene_dir: str | Path, viewpoints: np.ndarray | None = None) -> list[np.ndarray]:
     """Per primitive of ``gt/primitives.json``, ``[M, 3, 3]`` float32: its surface less the part within
     :data:`COVER_DISTANCE` of another primitive's surface (covered, see there). A triangle that comes
     near another primitive is first cut into pieces of edges up to :data:`COVER_STEP`, and each piece is
-    kept or dropped by its centre."""
+    kept or dropped by its centre. With ``viewpoints`` ``[V, 3]`` (the scene's camera centres), pieces
+    that face away from every one are dropped too: the floor slab's underside, a wall's outer face
+    (the primitives' triangles wind outwards)."""
     gt = Path(scene_dir) / "gt"
     records = json.loads((gt / "primitives.json").read_text())
     mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
@@ -135,7 +142,12 @@ def uncovered_triangles(scene_dir: str | Path) -> list[np.ndarray]:
                 covered[inside[gap <= COVER_DISTANCE]] = True
         hit = np.zeros(int(touching.sum()), dtype=bool)  # a triangle none of whose pieces is covered
         hit[parent[covered]] = True  # stays whole
-        out.append(np.concatenate([tris[~touching], tris[touching][~hit], cut[~covered & hit[parent]]]))
+        kept = np.concatenate([tris[~touching], tris[touching][~hit], cut[~covered & hit[parent]]])
+        if viewpoints is not None and len(kept):
+            normal = np.cross(kept[:, 1] - kept[:, 0], kept[:, 2] - kept[:, 0])
+            towards = np.asarray(viewpoints, np.float32)[None] - kept.mean(axis=1)[:, None]  # [M, V, 3]
+            kept = kept[((towards * normal[:, None]).sum(-1) > 0).any(axis=1)]
+        out.append(kept)
     return out
 
 

@@ -237,9 +237,10 @@ class _SelectionField:
 
 
 def _surface_points(scene_dir: Path, whole: str, n: int, seed: int) -> np.ndarray:
-    """``n`` points on the object's surface that no other part covers (where a camera can see it)."""
+    """``n`` points on the object's surface that no other part covers and some camera faces."""
     records = json.loads((scene_dir / "gt" / "primitives.json").read_text())
-    surfaces = uncovered_triangles(scene_dir)
+    viewpoints = np.stack([cam.center for cam in load_scene(scene_dir).cameras("all")])
+    surfaces = uncovered_triangles(scene_dir, viewpoints)
     mine = [t for t, r in zip(surfaces, records, strict=True) if r["labels"]["whole"] == whole]
     tris = np.concatenate(mine)
     mesh = o3d.geometry.TriangleMesh(

@@ -258,6 +258,16 @@ def test_the_floor_under_the_rug_is_covered_and_a_point_in_the_rug_is_the_rugs(t
     assert seen[:, 0].argmin() == 1 and seen[1, 0] == pytest.approx(0.006, abs=1e-4)  # ...which is hidden
     assert seen[0, 0] == pytest.approx(0.054, abs=1e-4)  # the nearest uncovered floor: the slab's underside
     assert plain[:, 1].argmin() == seen[:, 1].argmin() == 0
+    # Seen from above only, the slab's underside faces no camera: a point 3 cm into the slab, under the
+    # rug, is then the rug's (4 cm below its top), no longer the underside's (2 cm).
+    low = np.array([[0.3, 0.2, -0.03]])
+    _, below = distances_to_objects(tmp_path, low, uncovered=True)
+    _, above = distances_to_objects(tmp_path, low, uncovered=True, viewpoints=np.array([[0.0, 0.0, 2.0]]))
+    assert below[:, 0].argmin() == 0 and below[0, 0] == pytest.approx(0.02, abs=1e-4)
+    assert above[:, 0].argmin() == 1 and above[1, 0] == pytest.approx(0.04, abs=1e-4)
+    floor_seen, rug_seen = uncovered_triangles(tmp_path, np.array([[0.0, 0.0, 2.0]]))
+    assert _area(floor_seen) == pytest.approx(16 - 2.0, abs=4 * COVER_STEP)  # the top less the rug
+    assert _area(rug_seen) == pytest.approx(2.0, abs=1e-4)  # the top: straight above, the sides face away
 
 
 def test_text_embeddings_hold_labels_synonyms_and_canonical_phrases(scene: Path) -> None:
