@@ -6,7 +6,7 @@ python examples/language_losses.py FIELD_DIR [SCENE] [--json OUT.json] [--split 
 Rows, from the field as trained to the query pipeline's ceiling:
 - field: the field's rendered latents, read as the field records (what `langfield eval` scores); then
   the same latents decoded as they are (the paper's reading), read as their nearest codebook entries,
-  and read by vote among the entries of the Gaussians at each pixel (langfield.reading);
+  and read by vote among the entries of the Gaussians at each pixel (langfield.model.reading);
 - aggregated latents, trained geometry: every Gaussian's latents the rendering-weighted mean of the
   training views' mask latents (langfield.training.aggregate, no training), rendered with the trained
   Gaussians;

@@ -44,9 +44,9 @@ from langfield.model import gaussians as G
 from langfield.model.colour import ColorField
 from langfield.model.hashgrid import HashGridConfig
 from langfield.model.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
+from langfield.model.reading import concept_groups, vote_entries
 from langfield.query import Query, make_query
 from langfield.raster import Backend, rasterize, rasterize_with_second_pass
-from langfield.reading import concept_groups, vote_entries
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -286,8 +286,9 @@ class LanguageField(nn.Module):
 
         ``"codebook"``: the nearest entry of the pixel's rendered latent. ``"vote"``: that entry where the
         Gaussians whose own latents are nearest to its concept carry at least
-        :data:`~langfield.reading.VOTE_SHARE` of the pixel's weight, else the entry whose Gaussians carry
-        the most (:func:`langfield.reading.vote_entries`; it renders the entries' weights in the view).
+        :data:`~langfield.model.reading.VOTE_SHARE` of the pixel's weight, else the entry whose Gaussians
+        carry the most (:func:`langfield.model.reading.vote_entries`; it renders the entries' weights in
+        the view).
 
         Args:
             camera: the view.

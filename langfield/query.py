@@ -33,7 +33,7 @@ inside a cell that one linear piece covers; elsewhere the error is measured agai
 
 Per view, a query rasterizes only the nine latent channels, with every Gaussian's latents computed
 once per query (they do not depend on the camera); a field read by vote then renders one channel per
-codebook entry its Gaussians carry (:mod:`langfield.reading`).
+codebook entry its Gaussians carry (:mod:`langfield.model.reading`).
 
 Example:
     >>> field = langfield.LanguageField.load("out/")  # doctest: +SKIP

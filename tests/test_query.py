@@ -20,6 +20,7 @@ from langfield.cli.query import add_parser
 from langfield.constants import TEXT_TABLE_FILE
 from langfield.io.ply import read_gaussian_ply
 from langfield.model import gaussians as G
+from langfield.model.reading import VOTE_SHARE
 from langfield.query import (
     MATCH_RELEVANCY,
     EmptySelectionError,
@@ -30,7 +31,6 @@ from langfield.query import (
     text_encoder_for,
 )
 from langfield.raster import rasterize
-from langfield.reading import VOTE_SHARE
 from querying.evaluation import mask_iou
 from querying.relevancy import CANONICAL_PHRASES, choose_level, relevancy, relevancy_mask
 
@@ -159,7 +159,7 @@ def _with_decode(field: LanguageField, decode: str) -> LanguageField:
 
 
 def _vote_reference(field: LanguageField, cam: Camera, latents: Tensor, alpha: Tensor) -> Tensor:
-    """The vote of langfield.reading, from one render per entry: entries within 2 degrees by a
+    """The vote of langfield.model.reading, from one render per entry: entries within 2 degrees by a
     transitive closure, the weight each entry's Gaussians carry, and the rule per pixel."""
     splats = field.splats
     geometry = (splats["means"], splats["quats"], G.scales(splats), G.opacities(splats).reshape(-1))

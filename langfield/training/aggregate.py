@@ -107,7 +107,7 @@ def register_entries(
 
     The mode of the masks under a Gaussian, not their mean: a Gaussian on the edge between a lamp post
     and a wall is the lamp's or the wall's, where the mean of their latents can be nearest to a third
-    concept (the same reason as the vote of :mod:`langfield.reading`). Per level, the weight a Gaussian
+    concept (the same reason as the vote of :mod:`langfield.model.reading`). Per level, the weight a Gaussian
     carries on the pixels of entry e is the gradient of ``sum_p <render(p), [entry(p) = e]>`` with
     respect to a one-hot channel of that Gaussian (module docstring); entries go in chunks of channels.
 

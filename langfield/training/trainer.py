@@ -141,7 +141,7 @@ class TrainConfig:
     # land ~12 degrees from their targets, about the spacing of a room's concepts on the 3-d sphere
     # (docs/figures.md, "Language in novel views"). "vote" reads the nearest entry only where the
     # Gaussians of its concept carry part of the pixel's weight, else the entry with the most weight
-    # (langfield.reading): rooms 3x3, mIoU 0.817 -> 0.861 (docs/figures.md, "Reading by vote"). The
+    # (langfield.model.reading): rooms 3x3, mIoU 0.817 -> 0.861 (docs/figures.md, "Reading by vote"). The
     # reading changes no training step: the field records it, and it can be changed after training.
     language_decode: str = "vote"
     depth: bool | None = None  # None: when every training view has a depth prior (depths/)

@@ -1,4 +1,4 @@
-"""Tests of the vote reading (langfield/reading.py): concept groups and the entry each pixel reads."""
+"""Tests of the vote reading (langfield/model/reading.py): concept groups and the entry each pixel reads."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from langfield.reading import VOTE_SHARE, concept_groups, vote_entries
+from langfield.model.reading import VOTE_SHARE, concept_groups, vote_entries
 
 
 def _unit(degrees: list[float]) -> Tensor:
