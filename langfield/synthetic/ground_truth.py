@@ -78,24 +78,11 @@ def distances_to_objects(
         raise ValueError(f"distances_to_objects: level must be one of {LEVELS}, got {level!r}")
     pts = _check_points(points, "distances_to_objects")
     records = json.loads((gt / "primitives.json").read_text())
-    mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
     labels = sorted({r["labels"][level] for r in records})
-    if uncovered:
-        surfaces = uncovered_triangles(scene_dir, viewpoints)
-        rows = [
-            _soup_distances(
-                np.concatenate(
-                    [t for t, r in zip(surfaces, records, strict=True) if r["labels"][level] == k]
-                ),
-                pts,
-            )
-            for k in labels
-        ]
-        return labels, np.stack(rows) if rows else np.zeros((0, len(pts)), np.float32)
+    surfaces = uncovered_triangles(scene_dir, viewpoints) if uncovered else _primitive_triangles(gt, records)
     rows = [
-        _distances(
-            mesh,
-            np.concatenate([np.arange(*r["triangles"]) for r in records if r["labels"][level] == k]),
+        _soup_distances(
+            np.concatenate([t for t, r in zip(surfaces, records, strict=True) if r["labels"][level] == k]),
             pts,
         )
         for k in labels
@@ -119,13 +106,11 @@ def uncovered_triangles(scene_dir: str | Path, viewpoints: np.ndarray | None = N
     (the primitives' triangles wind outwards)."""
     gt = Path(scene_dir) / "gt"
     records = json.loads((gt / "primitives.json").read_text())
-    mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
-    corners = np.asarray(mesh.vertices, dtype=np.float32)[np.asarray(mesh.triangles)]  # [T, 3, 3]
+    triangles = _primitive_triangles(gt, records)
     lows = np.array([r["aabb"][0] for r in records]) - COVER_DISTANCE
     highs = np.array([r["aabb"][1] for r in records]) + COVER_DISTANCE
     out = []
-    for i, record in enumerate(records):
-        tris = corners[slice(*record["triangles"])]
+    for i, tris in enumerate(triangles):
         # [T_i, P]: the triangle's box meets another primitive's (grown by COVER_DISTANCE).
         near = (tris.min(axis=1)[:, None] <= highs[None]).all(-1) & (
             tris.max(axis=1)[:, None] >= lows[None]
@@ -138,7 +123,7 @@ def uncovered_triangles(scene_dir: str | Path, viewpoints: np.ndarray | None = N
         for j in np.flatnonzero(near.any(axis=0)):
             inside = np.flatnonzero(((centres >= lows[j]) & (centres <= highs[j])).all(axis=1))
             if len(inside):  # only centres inside the other primitive's box can lie that close to it
-                gap = _distances(mesh, np.arange(*records[j]["triangles"]), centres[inside])
+                gap = _soup_distances(triangles[j], centres[inside])
                 covered[inside[gap <= COVER_DISTANCE]] = True
         hit = np.zeros(int(touching.sum()), dtype=bool)  # a triangle none of whose pieces is covered
         hit[parent[covered]] = True  # stays whole
@@ -149,6 +134,13 @@ def uncovered_triangles(scene_dir: str | Path, viewpoints: np.ndarray | None = N
             kept = kept[((towards * normal[:, None]).sum(-1) > 0).any(axis=1)]
         out.append(kept)
     return out
+
+
+def _primitive_triangles(gt: Path, records: list[dict]) -> list[np.ndarray]:
+    """Per primitive of ``records``, ``[T, 3, 3]`` float32: its triangles' corners in ``gt/mesh.ply``."""
+    mesh = o3d.io.read_triangle_mesh(str(gt / "mesh.ply"))
+    corners = np.asarray(mesh.vertices, dtype=np.float32)[np.asarray(mesh.triangles)]
+    return [corners[slice(*r["triangles"])] for r in records]
 
 
 def _subdivide(triangles: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
