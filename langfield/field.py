@@ -85,6 +85,10 @@ class Render(NamedTuple):
         depth_hard: [H, W] hard depth (eq. 7) when asked for, else None.
         latents: [3, H, W, 3] rendered language latents (level, row, column, latent) when the field has
             language, else None; :meth:`LanguageField.decode` maps them to CLIP space.
+        depth_spread: [H, W] when asked for, else None: ``1/2 sum_ij w_i w_j (d_i - d_j)^2`` over the
+            Gaussians blended at the pixel (weights ``w = alpha T``, ``d`` their centres' distances to
+            the camera), i.e. alpha^2 times the variance of the blended distances. It is 0 where one
+            Gaussian, or several at one depth, make the pixel.
     """
 
     rgb: Tensor
@@ -94,6 +98,22 @@ class Render(NamedTuple):
     radii: Tensor
     depth_hard: Tensor | None = None
     latents: Tensor | None = None
+    depth_spread: Tensor | None = None
+
+
+def _second_moment(dist: Tensor) -> tuple[Tensor, Tensor]:
+    """``([N, 1] (d - c)^2, c)`` with c the median distance: the moment about one distance per view, so
+    that :func:`_spread` does not cancel ~(3 m)^2 against the ~(1 cm)^2 it measures."""
+    ref = dist.detach().median() if len(dist) else dist.new_zeros(())
+    return (dist - ref) ** 2, ref
+
+
+def _spread(first: Tensor, second: Tensor, alpha: Tensor, ref: Tensor) -> Tensor:
+    """:attr:`Render.depth_spread` from the rendered distance D, the rendered moment S about ``ref`` and
+    alpha: ``alpha S - (D - alpha ref)^2`` (= 1/2 sum_ij w_i w_j (d_i - d_j)^2), clamped at 0 against
+    rounding."""
+    centred = first - alpha * ref
+    return (alpha * second - centred * centred).clamp_min(0.0)
 
 
 class LanguageField(nn.Module):
@@ -353,6 +373,7 @@ class LanguageField(nn.Module):
         opacity_scale: Tensor | None = None,
         background: Tensor | None = None,
         grid: GridFeatures | None = None,
+        depth_spread: bool = False,
     ) -> Render:
         """Renders colour, soft depth and alpha (and optionally hard depth) from ``camera``.
 
@@ -367,6 +388,8 @@ class LanguageField(nn.Module):
             grid: :meth:`grid_features` of the current means, when several views are rendered from the
                 same Gaussians (a training step's virtual view): the grid is then read and
                 differentiated once, not once per view.
+            depth_spread: also render :attr:`Render.depth_spread` (one more channel, which passes
+                gradient to the geometry).
         """
         backend = backend or self.meta.backend
         means = self.splats["means"]
@@ -383,16 +406,20 @@ class LanguageField(nn.Module):
         grid = self.grid_features() if grid is None else grid
         rgb = self.color.rgb(grid.features, offset / dist)
         features = [rgb, dist]
+        if depth_spread:
+            second, ref = _second_moment(dist)
+            features.append(second)
+        n_geometry = len(features) + 2  # rgb is three channels
         latents = self.gaussian_latents(grid.corners) if language else None
         if latents is not None:
             features.append(latents.reshape(-1, LANGUAGE_CHANNELS))
         features = torch.cat(features, dim=-1)
         behind = self.background if background is None else background.to(features.dtype)
         background = torch.cat([behind, torch.zeros(features.shape[1] - 3)])
-        # Channels past rgb + distance (the latents) pass no gradient to the geometry: L_LF trains only
-        # the language features, in the same rasterization pass.
+        # Channels past rgb + distance (+ its second moment) -- the latents -- pass no gradient to the
+        # geometry: L_LF trains only the language features, in the same rasterization pass.
         gaussians = (means, quats, scales, opac, features, camera)
-        options = {"background": background, "backend": backend, "geometry_channels": 4}
+        options = {"background": background, "backend": backend, "geometry_channels": n_geometry}
         depth_hard = None
         if hard_depth:
             # Eq. 7: every opacity replaced by mu, scales and rotations detached, so the hard depth's
@@ -405,16 +432,11 @@ class LanguageField(nn.Module):
         rendered_latents = None
         if latents is not None:
             h, w = out.image.shape[:2]
-            rendered_latents = out.image[..., 4:].reshape(h, w, N_LEVELS, LATENT_DIM).permute(2, 0, 1, 3)
-        return Render(
-            out.image[..., :3],
-            out.image[..., 3],
-            out.alpha,
-            out.means2d,
-            out.radii,
-            depth_hard,
-            rendered_latents,
-        )
+            latent_channels = out.image[..., n_geometry:]
+            rendered_latents = latent_channels.reshape(h, w, N_LEVELS, LATENT_DIM).permute(2, 0, 1, 3)
+        spread = _spread(out.image[..., 3], out.image[..., 4], out.alpha, ref) if depth_spread else None
+        rgb, depth = out.image[..., :3], out.image[..., 3]
+        return Render(rgb, depth, out.alpha, out.means2d, out.radii, depth_hard, rendered_latents, spread)
 
     def grid_features(self) -> GridFeatures:
         """The colour grid at the current means (see :class:`GridFeatures`)."""

@@ -298,6 +298,73 @@ def test_hard_depth_gradient_moves_only_the_means(field, scene, backend) -> None
         assert grads[name] is None or not grads[name].any(), name
 
 
+def _spread_reference(field: LanguageField, cam: Camera, backend: str) -> torch.Tensor:
+    """1/2 sum_ij w_i w_j (d_i - d_j)^2 per pixel, from every Gaussian's own blending weight w_i (one
+    one-hot channel each, all passing gradient to the geometry), in float64."""
+    from langfield.model import gaussians as G
+    from langfield.raster import rasterize
+
+    splats = field.splats
+    n = field.num_gaussians
+    weights = rasterize(
+        splats["means"], splats["quats"], G.scales(splats), G.opacities(splats).reshape(-1),
+        torch.eye(n), cam, backend=backend, geometry_channels=n,
+    ).image.double()  # fmt: skip
+    d = (splats["means"].double() - torch.as_tensor(cam.center)).norm(dim=-1)
+    d = d - d.detach().mean()
+    a, first, second = weights.sum(-1), weights @ d, weights @ (d * d)
+    pixels = torch.randperm(cam.height * cam.width, generator=torch.Generator().manual_seed(0))[:16]
+    w = weights.reshape(-1, n)[pixels]  # the pairwise sum itself, on a few pixels
+    pairwise = 0.5 * (w[:, :, None] * w[:, None, :] * (d[:, None] - d[None, :]) ** 2).sum((1, 2))
+    moments = a * second - first * first
+    torch.testing.assert_close(moments.reshape(-1)[pixels], pairwise, rtol=1e-9, atol=1e-12)
+    return moments
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_depth_spread_is_the_pairwise_spread_of_the_blending_weights(field, scene, backend) -> None:
+    cam = scene.camera(scene.names("train")[0])
+    grads = []
+    cotangent = torch.rand(cam.height, cam.width, generator=torch.Generator().manual_seed(1))
+    for reference in (False, True):
+        field.zero_grad(set_to_none=True)
+        if reference:
+            spread = _spread_reference(field, cam, backend)
+        else:
+            r = field.render(cam, backend=backend, depth_spread=True)
+            assert field.render(cam, backend=backend).depth_spread is None  # only when asked for
+            spread = r.depth_spread
+            assert spread.shape == (cam.height, cam.width) and spread.min() >= 0
+        (spread * cotangent).sum().backward()
+        grads.append({k: p.grad.clone() for k, p in field.splats.items() if p.grad is not None})
+        grads[-1]["value"] = spread.detach().double()
+    field.zero_grad(set_to_none=True)
+    scale = float(grads[1]["value"].max())
+    assert scale > 0  # the view blends Gaussians at several depths
+    torch.testing.assert_close(grads[0]["value"], grads[1]["value"], rtol=0, atol=2e-4 * scale)
+    for name in ("means", "quats", "log_scales", "opacity_logits"):
+        g = grads[1][name].float()
+        assert g.abs().sum() > 0, name
+        torch.testing.assert_close(grads[0][name], g, rtol=0, atol=2e-3 * float(g.abs().max())), name
+
+
+def test_depth_spread_of_an_empty_view_and_of_one_depth_is_zero(field, scene, saved) -> None:
+    away = Camera.look_at(eye=(0, 0, 50), target=(0, 0, 100), width=20, height=15)  # sees nothing
+    empty = field.render(away, depth_spread=True)
+    assert torch.equal(empty.depth_spread, torch.zeros(15, 20)) and torch.isfinite(empty.depth).all()
+    cam = scene.camera(scene.names("train")[0])
+    shell = LanguageField.load(saved)
+    with torch.no_grad():  # every Gaussian 2 m from the camera, where it was seen
+        center = torch.as_tensor(cam.center, dtype=torch.float32)
+        offset = shell.splats["means"] - center
+        shell.splats["means"].copy_(center + 2.0 * offset / offset.norm(dim=-1, keepdim=True))
+        r = shell.render(cam, depth_spread=True)
+    assert r.alpha.max() > 0.5 and float(r.depth_spread.max()) < 1e-5
+    with torch.no_grad():
+        single = field.select(torch.arange(1)).render(cam, depth_spread=True)
+    assert float(single.depth_spread.abs().max()) < 1e-6
+
+
 def test_render_from_a_free_camera(field) -> None:
     cam = Camera.look_at(eye=(2, -2, 1.5), target=(0, 0, 0.5), width=40, height=30)
     with torch.no_grad():

@@ -34,7 +34,7 @@ def train_config(args: argparse.Namespace):
     # Flags left unset keep TrainConfig's defaults.
     given = {name: getattr(args, name) for name in SPARSE_VIEW_FLAGS if getattr(args, name) is not None}
     language = ("language_start", "autoencoder_spread", "language_balance", "language_decode")
-    for name in ("lambda_opacity", *language):
+    for name in ("lambda_opacity", "init_align", *language):
         if getattr(args, name) is not None:
             given[name] = getattr(args, name)
     return replace(cfg, **given)
@@ -56,6 +56,7 @@ SPARSE_VIEW_FLAGS = (
     "lambda_visibility",
     "carve_free_space",
     "lambda_smooth",
+    "lambda_spread",
     "lambda_anisotropy",
 )
 
@@ -102,6 +103,13 @@ TRAIN_FLAGS = (
         help="where the Gaussians start: plane-sweep stereo on the training views, COLMAP's sparse SIFT "
         "points, the depth prior aligned to the stereo points, or random in the bounds (default auto: "
         "depth when every training view has a depth prior, else dense)",
+    ),
+    _flag(
+        "--init-align",
+        choices=["views", "anchors"],
+        default=None,
+        help="how the depth start aligns each view's prior: refined until the views agree with one "
+        "another (views, the default), or fitted to the view's own stereo alone (anchors)",
     ),
     _flag("--bounds", type=bounds_arg, default=None, help="xmin,ymin,zmin,xmax,ymax,zmax to initialise in"),
     _flag("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)"),
@@ -230,6 +238,12 @@ TRAIN_FLAGS = (
         help="every opacity times this factor each iteration (Binocular-guided 3DGS: 0.995; 1: off)",
     ),
     _flag("--lambda-smooth", type=float, default=None, help="weight of edge-aware depth smoothness (0: off)"),
+    _flag(
+        "--lambda-spread",
+        type=float,
+        default=None,
+        help="weight of the depth spread: each pixel's blending weights gathered at one depth (0: off)",
+    ),
     _flag(
         "--lambda-anisotropy",
         type=float,

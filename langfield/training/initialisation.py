@@ -14,7 +14,8 @@ forms from it. With the poses known, the photos alone give surface points:
   pycolmap (COLMAP's extraction, exhaustive matching and ``triangulate_points``), as FSGS and CoR-GS
   do; sparse on three views (about a hundred points on LLFF fern).
 - ``depth``: the scene's depth prior of each training view, aligned per view by scale and shift to
-  the dense points it sees, and back-projected.
+  the dense points it sees, the views' lines then refined to agree with one another
+  (:mod:`langfield.training.prior_alignment`), and back-projected.
 - ``random``: uniform in the bounds (DNGaussian), also the fallback when a method finds too few
   points, with a warning.
 
@@ -36,8 +37,10 @@ import cv2
 import numpy as np
 
 from langfield.camera import Camera
+from langfield.training.prior_alignment import refine_alignment
 
 __all__ = [
+    "INIT_ALIGNS",
     "INIT_METHODS",
     "PlaneSweepConfig",
     "StartPoints",
@@ -51,6 +54,9 @@ __all__ = [
 
 InitMethod = Literal["dense", "sfm", "depth", "random"]
 INIT_METHODS: tuple[str, ...] = ("dense", "sfm", "depth", "random")
+# How the ``depth`` start aligns each view's prior: "views" refines the per-view fits so that the views
+# agree with one another (langfield.training.prior_alignment), "anchors" keeps each view's own fit.
+INIT_ALIGNS: tuple[str, ...] = ("views", "anchors")
 # Below this many photo points a start is not trusted: random instead, with a warning.
 MIN_POINTS = 200
 
@@ -386,6 +392,7 @@ def start_points(
     priors: list[np.ndarray] | None = None,
     depth_kind: str | None = None,
     sweep: PlaneSweepConfig = PlaneSweepConfig(),
+    align: str = "views",
 ) -> StartPoints:
     """The start of training: ``num`` points by ``method`` (module docstring), the last ``fill`` of
     them random in ``bounds``.
@@ -396,9 +403,9 @@ def start_points(
         bounds: [2, 3] scene box.
         num: the number of Gaussians to start with (photo points are thinned or topped up to
             ``num / (1 + fill)``).
-        seed: seed of the random points.
-        fill: random points as a fraction of the photo points.
-        priors, depth_kind: the training views' depth priors (``method="depth"``).
+        seed, fill: seed of the random points; their count as a fraction of the photo points.
+        priors, depth_kind, align: the training views' depth priors and how they are aligned
+            (``method="depth"``, :func:`depth_prior_points`).
         sweep: plane-sweep settings.
 
     Returns:
@@ -425,7 +432,7 @@ def start_points(
         photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
     if method == "depth":
         photo, colors, stats["depth"] = depth_prior_points(
-            cameras, images, priors, depth_kind, photo, depth_maps
+            cameras, images, priors, depth_kind, photo, depth_maps, align=align
         )
         photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
     used = method
@@ -486,6 +493,7 @@ def depth_prior_points(
     anchors: np.ndarray,
     stereo: list[np.ndarray] | tuple[np.ndarray, ...] | None = None,
     min_anchors: int = 50,
+    align: str = "views",
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Every pixel of each training view's depth prior, aligned to metric depths and back-projected.
 
@@ -493,34 +501,52 @@ def depth_prior_points(
     ``depth``, 1/z for ``disparity``) are fitted by :func:`_trimmed_fit`. The known depths are the
     view's own ``stereo`` z-depth map where it resolves at least ``min_anchors`` pixels (pixel-aligned,
     so nothing occluded in this view enters the fit), else the ``anchors`` [N, 3] projected into the
-    view; views with fewer than ``min_anchors`` of either are skipped.
+    view; views with fewer than ``min_anchors`` of either are skipped. With ``align="views"`` the lines
+    are then refined so that the views' aligned priors agree with one another
+    (:func:`langfield.training.prior_alignment.refine_alignment`); ``"anchors"`` keeps each view's own
+    fit.
 
     Returns:
         ``(points [N, 3], colors [N, 3], stats)`` with the per-view fit in ``stats``.
     """
     if priors is None or depth_kind is None:
         raise ValueError("init 'depth' needs every training view's depth prior (depths/ and depth_kind)")
-    points, colors, fits = [], [], []
-    for i, (cam, image, prior) in enumerate(zip(cameras, images, priors, strict=True)):
+    if align not in INIT_ALIGNS:
+        raise ValueError(f"align must be one of {', '.join(INIT_ALIGNS)}, got {align!r}")
+    lines, known, fits = [], [], []
+    for i, (cam, prior) in enumerate(zip(cameras, priors, strict=True)):
         x, z, source = _prior_anchors(cam, prior, anchors, None if stereo is None else stereo[i], min_anchors)
         if x is None:
+            lines.append(None)
+            known.append(None)
             fits.append(None)
             continue
         a, b, inliers = _trimmed_fit(x, 1.0 / z if depth_kind == "disparity" else z)
-        target = a * prior.astype(np.float64) + b
+        lines.append((a, b))
+        known.append((x, z))
+        fits.append({"scale": float(a), "shift": float(b), "anchors": inliers, "from": source})
+    stats: dict = {"fits": fits}
+    if align == "views":
+        t0 = time.perf_counter()
+        refined = refine_alignment(cameras, priors, depth_kind, lines, known)
+        for fit, line in zip(fits, refined, strict=True):
+            if fit is not None and line is not None:
+                fit.update(anchor_scale=fit["scale"], anchor_shift=fit["shift"], scale=line[0], shift=line[1])
+        stats["align_seconds"] = time.perf_counter() - t0
+        lines = refined
+    points, colors = [], []
+    for cam, image, prior, line in zip(cameras, images, priors, lines, strict=True):
+        if line is None:
+            continue
+        target = line[0] * prior.astype(np.float64) + line[1]
         depth = 1.0 / np.where(target > 1e-12, target, np.nan) if depth_kind == "disparity" else target
         valid = np.isfinite(depth) & (depth > 0)
         rows, cols = np.nonzero(valid)
         points.append(_backproject(depth, cam, rows, cols))
         colors.append(image[rows, cols])
-        fits.append({"scale": float(a), "shift": float(b), "anchors": inliers, "from": source})
     if not points:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), {"fits": fits}
-    return (
-        np.concatenate(points).astype(np.float32),
-        np.concatenate(colors).astype(np.float32),
-        {"fits": fits},
-    )
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), stats
+    return np.concatenate(points).astype(np.float32), np.concatenate(colors).astype(np.float32), stats
 
 
 def _prior_anchors(

@@ -15,6 +15,13 @@
   the rendered depth, divided by its mean so the term does not depend on the scene's scale, should
   change little where the image does not; textureless surfaces (a white table) then take their depth
   from the textured edges around them instead of being explained by floaters anywhere on the ray.
+- Depth spread (Mip-NeRF 360's distortion loss, Barron et al., CVPR 2022, eq. 15; 2D Gaussian
+  splatting's, Huang et al., SIGGRAPH 2024, eq. 13, between Gaussians): the blending weights of a pixel
+  should gather at one depth. Here in squared form, ``1/2 sum_ij w_i w_j (d_i - d_j)^2`` over the
+  Gaussians' centres, which two rendered channels give in closed form (``alpha S - D^2``; the field
+  renders it, :attr:`langfield.field.Render.depth_spread`) where the absolute form needs a sorted pass
+  of its own. Three views leave an untextured wall free to be many faint layers spread along each ray:
+  they fit the training images, but from a new angle, and in the 3D selection, they are off the wall.
 - Anisotropy penalty: needle-thin Gaussians fit a training view with a streak that crosses every other
   view (the Blender lego far views); max scale / min scale above ``ratio`` is penalised
   (PhysGaussian's anisotropy regulariser, Xie et al., CVPR 2024, eq. 9).
@@ -227,6 +234,18 @@ def virtual_shift(
         angle = float(rng.uniform(0.0, 2.0 * math.pi))
         return length * math.cos(angle), length * math.sin(angle)
     return float(rng.choice([-1.0, 1.0])) * length, 0.0
+
+
+def depth_spread_loss(spread: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:
+    """The mean depth spread of a render (module docstring) over the squared mean rendered depth.
+
+    Args:
+        spread: [H, W] :attr:`langfield.field.Render.depth_spread`.
+        depth, alpha: [H, W] the same render's soft depth and alpha; their mean depth (held fixed) makes
+            the term free of the scene's scale.
+    """
+    scale = (depth.sum() / alpha.sum().clamp_min(1e-8)).detach().clamp_min(1e-8)
+    return spread.mean() / (scale * scale)
 
 
 def depth_smoothness(depth: Tensor, image: Tensor, valid: Tensor, edge_weight: float = 10.0) -> Tensor:

@@ -52,7 +52,7 @@ from langfield.model.language import (
 )
 from langfield.raster import resolve_backend
 from langfield.training.aggregate import register_entries
-from langfield.training.initialisation import INIT_METHODS, StartPoints, start_points
+from langfield.training.initialisation import INIT_ALIGNS, INIT_METHODS, StartPoints, start_points
 from langfield.training.lad import LAMBDA_SA, LADTarget, depth_loss
 from langfield.training.lop import LOP_GAMMA, LOP_INTERVAL, LOP_TAU, lop_prune
 from langfield.training.regularisers import (
@@ -60,6 +60,7 @@ from langfield.training.regularisers import (
     backproject,
     dark_backdrop,
     depth_smoothness,
+    depth_spread_loss,
     drop_compensation,
     free_space_violation,
     shifted_camera,
@@ -89,6 +90,10 @@ class TrainConfig:
     # more than 2 %, and the start is topped up around them; the aligned prior gives every pixel a point.
     # Rooms of 3 layouts x 3 seeds: docs/figures.md, "A start from the depth prior".
     init: Literal["auto", "dense", "sfm", "depth", "random"] = "auto"
+    # The depth start's alignment: "views" refines each view's prior line, fitted to its own stereo, so
+    # that the views agree with one another (langfield.training.prior_alignment); "anchors" keeps the
+    # per-view fits. Rooms of 3 layouts x 3 seeds: docs/figures.md, "Aligning the priors to one another".
+    init_align: Literal["views", "anchors"] = "views"
     init_fill: float = 0.1  # random points added, as a fraction of the photo points
     backend: str = "auto"
     num_gaussians: int | None = None
@@ -206,6 +211,10 @@ class TrainConfig:
     carve_free_space: bool = False
     carve_tolerance: float = 0.03
     lambda_smooth: float = 0.0  # edge-aware smoothness of the rendered depth
+    # Depth spread (langfield.training.regularisers.depth_spread_loss): the blending weights of a pixel
+    # gathered at one depth, Mip-NeRF 360's distortion loss in squared form between the Gaussians' centres.
+    lambda_spread: float = 0.0
+    spread_start: float = 0.33  # the term from this fraction of the run on
     lambda_anisotropy: float = 0.0  # penalty on max/min scale above anisotropy_ratio
     anisotropy_ratio: float = 10.0
     # Pseudo views: an ONNX image refiner folder (encoders.onnx_refiner) cleans renders of virtual cameras
@@ -232,6 +241,7 @@ CONFIG_FLAGS = {
     "backend": "--backend",
     "num_gaussians": "--num-gaussians",
     "init": "--init",
+    "init_align": "--init-align",
     "bounds": "--bounds",
     "language_features": "--language-features",
     "language_grid_scale": "--language-grid-scale",
@@ -254,6 +264,7 @@ CONFIG_FLAGS = {
     "lambda_visibility": "--lambda-visibility",
     "carve_free_space": "--carve-free-space",
     "lambda_smooth": "--lambda-smooth",
+    "lambda_spread": "--lambda-spread",
     "lambda_anisotropy": "--lambda-anisotropy",
     "refiner": "--refiner",
 }
@@ -303,6 +314,8 @@ def _check_start_and_model(c: _ConfigCheck, cfg: TrainConfig) -> None:
         c.fail("backend", "'auto', 'torch' or 'cpu'")
     if cfg.init not in ("auto", *INIT_METHODS):
         c.fail("init", " or ".join(repr(m) for m in ("auto", *INIT_METHODS)))
+    if cfg.init_align not in INIT_ALIGNS:
+        c.fail("init_align", " or ".join(repr(m) for m in INIT_ALIGNS))
     c.number("init_fill", 0.0, 10.0)
     c.whole("num_gaussians", 1, optional=True)
     c.whole("max_gaussians", 1, optional=True)
@@ -354,6 +367,8 @@ def _check_regularisers(c: _ConfigCheck, cfg: TrainConfig) -> None:
     c.whole("virtual_every", 1)
     c.number("virtual_resolution", 0.0, 1.0, open_low=True)
     c.number("lambda_smooth", 0.0)
+    c.number("lambda_spread", 0.0)
+    c.number("spread_start", 0.0, 1.0)
     c.number("lambda_visibility", 0.0)
     c.number("visibility_tolerance", 0.0, 1.0)
     c.number("carve_tolerance", 0.0, 1.0)
@@ -634,6 +649,7 @@ def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
         fill=cfg.init_fill,
         priors=[scene.depth(c.name) for c in train_cams] if method == "depth" else None,
         depth_kind=scene.depth_kind,
+        align=cfg.init_align,
     )
 
 
@@ -917,6 +933,7 @@ def _step_loss(run: _Run, step: int, name: str) -> tuple[Tensor, Render, Camera]
         opacity_scale=keep,
         background=behind,
         grid=grid,
+        depth_spread=cfg.lambda_spread > 0 and step >= cfg.spread_start * cfg.iterations,
     )
     loss = color_loss(out.rgb, target, cfg.lambda_dssim)
     if cover is not None and cfg.lambda_empty > 0:
@@ -947,6 +964,8 @@ def _geometry_and_language_loss(run: _Run, name: str, view: ViewTargets, out: Re
         run.rendered[name] = (cam, depth_z.detach(), covered)
     if cfg.lambda_smooth > 0:
         loss = loss + cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered)
+    if cfg.lambda_spread > 0 and out.depth_spread is not None:
+        loss = loss + cfg.lambda_spread * depth_spread_loss(out.depth_spread, out.depth, out.alpha)
     if cfg.lambda_anisotropy > 0:
         loss = loss + cfg.lambda_anisotropy * anisotropy_loss(
             field.splats["log_scales"], cfg.anisotropy_ratio

@@ -15,6 +15,7 @@ from langfield.training.regularisers import (
     anisotropy_loss,
     dark_backdrop,
     depth_smoothness,
+    depth_spread_loss,
     drop_compensation,
     shifted_camera,
     virtual_shift,
@@ -157,6 +158,37 @@ def test_depth_smoothness_is_scale_free_and_allows_steps_at_image_edges() -> Non
     assert float(depth_smoothness(step_elsewhere, image, torch.zeros(8, 8, dtype=torch.bool))) == 0.0
 
 
+def test_depth_spread_loss_is_scale_free_and_empty_views_give_zero() -> None:
+    spread = torch.rand(6, 8, generator=torch.Generator().manual_seed(0))
+    alpha = torch.rand(6, 8, generator=torch.Generator().manual_seed(1))
+    depth = alpha * 3.0
+    loss = depth_spread_loss(spread, depth, alpha)
+    assert float(loss) == pytest.approx(float(spread.mean()) / 9.0, rel=1e-6)
+    torch.testing.assert_close(depth_spread_loss(100 * spread, 10 * depth, alpha), loss)
+    nothing = depth_spread_loss(torch.zeros(6, 8), torch.zeros(6, 8), torch.zeros(6, 8))
+    assert float(nothing) == 0.0
+
+
+def test_the_spread_term_renders_from_its_start_on(scene, monkeypatch) -> None:
+    from langfield.field import LanguageField
+
+    asked = []
+    real = LanguageField.render
+    monkeypatch.setattr(
+        LanguageField,
+        "render",
+        lambda self, cam, **k: asked.append(k.get("depth_spread", False)) or real(self, cam, **k),
+    )
+    cfg = lf.TrainConfig(
+        iterations=6, num_gaussians=200, init="random", language=False, depth=False, lambda_virtual=0.0
+    )
+    lf.train(scene, dataclasses.replace(cfg, lambda_spread=1.0, spread_start=0.5), progress=False)
+    assert asked[:6] == [False] * 3 + [True] * 3
+    asked.clear()
+    lf.train(scene, cfg, progress=False)  # off by default
+    assert not any(asked)
+
+
 @pytest.fixture(scope="module")
 def scene(room_factory):
     return lf.load_scene(room_factory(48, 36, n_test=1))
@@ -165,13 +197,13 @@ def scene(room_factory):
 @pytest.mark.slow
 def test_training_with_every_regulariser_runs_and_is_recorded(scene) -> None:
     cfg = lf.TrainConfig(iterations=6, num_gaussians=300, init="random", drop_gamma=0.2)
-    more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1}
+    more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1, "lambda_spread": 1.0}
     cfg = lf.TrainConfig(**{**cfg.__dict__, **more})
     field = lf.train(scene, cfg, progress=False)
     assert all(torch.isfinite(p).all() for p in field.splats.values())
     recorded = field.meta["config"]
     assert recorded["drop_gamma"] == 0.2 and recorded["lambda_virtual"] == 1.0
-    assert recorded["lambda_anisotropy"] == 0.1
+    assert recorded["lambda_anisotropy"] == 0.1 and recorded["lambda_spread"] == 1.0
 
 
 def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
@@ -196,6 +228,8 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
         "0.5",
         "--lambda-visibility",
         "0.1",
+        "--lambda-spread",
+        "0.05",
     ]
     argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
     assert main([*argv, "--init", "random", *flags]) == 0
@@ -204,6 +238,7 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
     expected.update(random_background=False, lambda_smooth=0.01, lambda_anisotropy=0.02)
     expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99, virtual_every=3)
     expected.update(virtual_resolution=0.5, half_resolution_until=0.5, lambda_visibility=0.1)
+    expected.update(lambda_spread=0.05)
     assert {k: recorded[k] for k in expected} == expected
     assert main([*argv, "--force", "--random-background"]) == 0
     assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
@@ -298,6 +333,8 @@ def test_dropout_changes_training_and_rendering_uses_every_gaussian(scene) -> No
         ("virtual_resolution", 0.0),
         ("virtual_resolution", 1.5),
         ("half_resolution_until", 1.5),
+        ("lambda_spread", -1.0),
+        ("spread_start", 1.5),
     ],
 )
 def test_bad_regulariser_settings_are_refused(key, value) -> None:
