@@ -106,10 +106,11 @@ TRAIN_FLAGS = (
     ),
     _flag(
         "--init-align",
-        choices=["views", "anchors"],
+        choices=["smooth", "views", "anchors"],
         default=None,
-        help="how the depth start aligns each view's prior: refined until the views agree with one "
-        "another (views, the default), or fitted to the view's own stereo alone (anchors)",
+        help="how the depth start aligns each view's prior: a line refined until the views agree with "
+        "one another, then a smooth correction from photo-consistency and the other views (smooth, the "
+        "default), the line alone (views), or the line fitted to the view's own stereo (anchors)",
     ),
     _flag("--bounds", type=bounds_arg, default=None, help="xmin,ymin,zmin,xmax,ymax,zmax to initialise in"),
     _flag("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)"),

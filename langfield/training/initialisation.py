@@ -15,7 +15,8 @@ forms from it. With the poses known, the photos alone give surface points:
   do; sparse on three views (about a hundred points on LLFF fern).
 - ``depth``: the scene's depth prior of each training view, aligned per view by scale and shift to
   the dense points it sees, the views' lines then refined to agree with one another
-  (:mod:`langfield.training.prior_alignment`), and back-projected.
+  (:mod:`langfield.training.prior_alignment`), each view's prior corrected by a smooth field
+  (:mod:`langfield.training.prior_correction`), and back-projected.
 - ``random``: uniform in the bounds (DNGaussian), also the fallback when a method finds too few
   points, with a warning.
 
@@ -38,6 +39,7 @@ import numpy as np
 
 from langfield.camera import Camera
 from langfield.training.prior_alignment import refine_alignment
+from langfield.training.prior_correction import correct_priors
 
 __all__ = [
     "INIT_ALIGNS",
@@ -55,8 +57,9 @@ __all__ = [
 InitMethod = Literal["dense", "sfm", "depth", "random"]
 INIT_METHODS: tuple[str, ...] = ("dense", "sfm", "depth", "random")
 # How the ``depth`` start aligns each view's prior: "views" refines the per-view fits so that the views
-# agree with one another (langfield.training.prior_alignment), "anchors" keeps each view's own fit.
-INIT_ALIGNS: tuple[str, ...] = ("views", "anchors")
+# agree with one another (langfield.training.prior_alignment), "smooth" then corrects each view's prior
+# by a smooth field (langfield.training.prior_correction), "anchors" keeps each view's own fit.
+INIT_ALIGNS: tuple[str, ...] = ("smooth", "views", "anchors")
 # Below this many photo points a start is not trusted: random instead, with a warning.
 MIN_POINTS = 200
 
@@ -392,7 +395,7 @@ def start_points(
     priors: list[np.ndarray] | None = None,
     depth_kind: str | None = None,
     sweep: PlaneSweepConfig = PlaneSweepConfig(),
-    align: str = "views",
+    align: str = "smooth",
 ) -> StartPoints:
     """The start of training: ``num`` points by ``method`` (module docstring), the last ``fill`` of
     them random in ``bounds``.
@@ -493,7 +496,7 @@ def depth_prior_points(
     anchors: np.ndarray,
     stereo: list[np.ndarray] | tuple[np.ndarray, ...] | None = None,
     min_anchors: int = 50,
-    align: str = "views",
+    align: str = "smooth",
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Every pixel of each training view's depth prior, aligned to metric depths and back-projected.
 
@@ -503,7 +506,9 @@ def depth_prior_points(
     so nothing occluded in this view enters the fit), else the ``anchors`` [N, 3] projected into the
     view; views with fewer than ``min_anchors`` of either are skipped. With ``align="views"`` the lines
     are then refined so that the views' aligned priors agree with one another
-    (:func:`langfield.training.prior_alignment.refine_alignment`); ``"anchors"`` keeps each view's own
+    (:func:`langfield.training.prior_alignment.refine_alignment`); ``"smooth"`` also corrects each
+    view's aligned prior by a smooth field, from photo-consistency and the other views
+    (:func:`langfield.training.prior_correction.correct_priors`); ``"anchors"`` keeps each view's own
     fit.
 
     Returns:
@@ -526,7 +531,7 @@ def depth_prior_points(
         known.append((x, z))
         fits.append({"scale": float(a), "shift": float(b), "anchors": inliers, "from": source})
     stats: dict = {"fits": fits}
-    if align == "views":
+    if align in ("views", "smooth"):
         t0 = time.perf_counter()
         refined = refine_alignment(cameras, priors, depth_kind, lines, known)
         for fit, line in zip(fits, refined, strict=True):
@@ -534,12 +539,18 @@ def depth_prior_points(
                 fit.update(anchor_scale=fit["scale"], anchor_shift=fit["shift"], scale=line[0], shift=line[1])
         stats["align_seconds"] = time.perf_counter() - t0
         lines = refined
-    points, colors = [], []
-    for cam, image, prior, line in zip(cameras, images, priors, lines, strict=True):
+    depths = []
+    for prior, line in zip(priors, lines, strict=True):
         if line is None:
+            depths.append(np.full(prior.shape, np.nan))
             continue
         target = line[0] * prior.astype(np.float64) + line[1]
         depth = 1.0 / np.where(target > 1e-12, target, np.nan) if depth_kind == "disparity" else target
+        depths.append(np.where(depth > 0, depth, np.nan))
+    if align == "smooth":
+        depths, stats["correction"] = correct_priors(cameras, images, depths)
+    points, colors = [], []
+    for cam, image, depth in zip(cameras, images, depths, strict=True):
         valid = np.isfinite(depth) & (depth > 0)
         rows, cols = np.nonzero(valid)
         points.append(_backproject(depth, cam, rows, cols))

@@ -91,9 +91,11 @@ class TrainConfig:
     # Rooms of 3 layouts x 3 seeds: docs/figures.md, "A start from the depth prior".
     init: Literal["auto", "dense", "sfm", "depth", "random"] = "auto"
     # The depth start's alignment: "views" refines each view's prior line, fitted to its own stereo, so
-    # that the views agree with one another (langfield.training.prior_alignment); "anchors" keeps the
-    # per-view fits. Rooms of 3 layouts x 3 seeds: docs/figures.md, "Aligning the priors to one another".
-    init_align: Literal["views", "anchors"] = "views"
+    # that the views agree with one another (langfield.training.prior_alignment); "smooth" then corrects
+    # each view's prior by a smooth field from photo-consistency in a narrow band and the other views
+    # (langfield.training.prior_correction); "anchors" keeps the per-view fits. Rooms of 3 layouts x 3
+    # seeds: docs/figures.md, "Aligning the priors to one another" and "Correcting the priors".
+    init_align: Literal["smooth", "views", "anchors"] = "smooth"
     init_fill: float = 0.1  # random points added, as a fraction of the photo points
     backend: str = "auto"
     num_gaussians: int | None = None
