@@ -38,6 +38,16 @@ import cv2
 import numpy as np
 
 from langfield.camera import Camera
+from langfield.training.pixels import (
+    backproject,
+    box_mean,
+    cv_pose,
+    gray,
+    intrinsic_matrix,
+    project,
+    window_stats,
+    zncc,
+)
 from langfield.training.prior_alignment import refine_alignment
 from langfield.training.prior_correction import correct_priors
 
@@ -108,45 +118,12 @@ class PlaneSweepConfig:
     max_points: int = 60000
 
 
-# ---------------------------------------------------------------- camera helpers (OpenCV convention)
-
-
-def _cv_pose(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(R [3, 3], t [3]) world -> camera in the OpenCV convention (x right, y down, z forward)."""
-    w2c = cam.world_to_camera(dtype=__import__("torch").float64).numpy()
-    return w2c[:3, :3], w2c[:3, 3]
-
-
-def _k(cam: Camera) -> np.ndarray:
-    return np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
-
-
-def _project(points: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates [N, 2] and depths z [N] of world points in ``cam``."""
-    r, t = _cv_pose(cam)
-    p = points @ r.T + t
-    z = p[:, 2]
-    zs = np.where(np.abs(z) < 1e-12, 1e-12, z)
-    uv = np.stack([cam.fx * p[:, 0] / zs + cam.cx, cam.fy * p[:, 1] / zs + cam.cy], axis=-1)
-    return uv, z
-
-
-def _backproject(depth: np.ndarray, cam: Camera, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """World points [N, 3] of pixel centres (rows, cols) at z-depth ``depth[rows, cols]``."""
-    r, t = _cv_pose(cam)
-    z = depth[rows, cols]
-    x = (cols + 0.5 - cam.cx) / cam.fx * z
-    y = (rows + 0.5 - cam.cy) / cam.fy * z
-    cam_pts = np.stack([x, y, z], axis=-1)
-    return (cam_pts - t) @ r  # R^T (p - t)
-
-
 def depth_range(cam: Camera, bounds: np.ndarray) -> tuple[float, float]:
     """(near, far) z-depths of the box ``bounds`` [2, 3] seen from ``cam`` (near kept positive)."""
     corners = np.array(
         [[bounds[i][0], bounds[j][1], bounds[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
     )
-    _, z = _project(corners, cam)
+    _, z = project(corners, cam)
     far = float(z.max())
     if far <= 0:
         raise ValueError(f"camera {cam.name!r}: the scene bounds lie behind it")
@@ -155,14 +132,6 @@ def depth_range(cam: Camera, bounds: np.ndarray) -> tuple[float, float]:
 
 
 # ---------------------------------------------------------------- plane sweep
-
-
-def _gray(image: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(np.ascontiguousarray(image, dtype=np.float32), cv2.COLOR_RGB2GRAY)
-
-
-def _box(x: np.ndarray, size: int) -> np.ndarray:
-    return cv2.blur(x, (size, size), borderType=cv2.BORDER_REFLECT_101)
 
 
 def plane_sweep(
@@ -195,21 +164,20 @@ def plane_sweep(
         raise ValueError(f"plane_sweep: need 0 < near < far and a source view, got {near}, {far}")
     h, w = ref.height, ref.width
     size = max(5, 2 * round(cfg.window * w / 400 / 2) + 1)  # 3x3 windows match too much noise
-    g_ref = _gray(ref_image)
-    mu_r = _box(g_ref, size)
-    var_r = np.maximum(_box(g_ref * g_ref, size) - mu_r * mu_r, 0.0)
+    g_ref = gray(ref_image)
+    mu_r, var_r = window_stats(g_ref, size)
     flat = np.sqrt(var_r) < cfg.min_texture
-    k_ref_inv = np.linalg.inv(_k(ref))
-    r_ref, t_ref = _cv_pose(ref)
+    k_ref_inv = np.linalg.inv(intrinsic_matrix(ref))
+    r_ref, t_ref = cv_pose(ref)
     inv_depths = np.linspace(1.0 / near, 1.0 / far, cfg.planes)
     scores = np.full((cfg.planes, h, w), -1.0, dtype=np.float32)
     prepared = []
     for cam, image in sources:
-        r_src, t_src = _cv_pose(cam)
+        r_src, t_src = cv_pose(cam)
         rel_r = r_src @ r_ref.T
         rel_t = t_src - rel_r @ t_ref
-        plane_part = _k(cam) @ np.outer(rel_t, [0.0, 0.0, 1.0]) @ k_ref_inv
-        prepared.append((_k(cam) @ rel_r @ k_ref_inv, plane_part, _gray(image), cam))
+        plane_part = intrinsic_matrix(cam) @ np.outer(rel_t, [0.0, 0.0, 1.0]) @ k_ref_inv
+        prepared.append((intrinsic_matrix(cam) @ rel_r @ k_ref_inv, plane_part, gray(image), cam))
     # Pixel centres: OpenCV's warp maps integer pixel coordinates, so shift by the half pixel.
     shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
     unshift = np.linalg.inv(shift)
@@ -223,12 +191,9 @@ def plane_sweep(
             seen = cv2.warpPerspective(
                 np.ones((cam.height, cam.width), np.float32), homography, (w, h), flags=flags, borderValue=0.0
             )
-            mu_s = _box(warped, size)
-            var_s = np.maximum(_box(warped * warped, size) - mu_s * mu_s, 0.0)
-            cov = _box(g_ref * warped, size) - mu_r * mu_s
-            zncc = cov / np.sqrt(var_r * var_s + 1e-10)
-            valid = (_box(seen, size) > 0.999) & (var_s > cfg.min_texture**2)
-            total += np.where(valid, zncc, 0.0)
+            score, var_s = zncc(g_ref, mu_r, var_r, warped, size)
+            valid = (box_mean(seen, size) > 0.999) & (var_s > cfg.min_texture**2)
+            total += np.where(valid, score, 0.0)
             count += valid
         scores[i] = np.where(count > 0, total / np.maximum(count, 1.0), -1.0)
     depth, best_score, interior = _best_depth(scores, inv_depths)
@@ -265,8 +230,8 @@ def _consistent(
     h, w = depth.shape
     rows, cols = np.mgrid[0:h, 0:w]
     rows, cols = rows.ravel(), cols.ravel()
-    pts = _backproject(depth, cam, rows, cols)
-    uv, z = _project(pts, other)
+    pts = backproject(depth, cam, rows, cols)
+    uv, z = project(pts, other)
     c, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
     inside = (z > 0) & (c >= 0) & (c < other.width) & (r >= 0) & (r < other.height)
     ok = np.zeros(h * w, dtype=bool)
@@ -275,8 +240,8 @@ def _consistent(
     d_other = other_depth[ri, ci]
     good = other_valid[ri, ci] & (np.abs(d_other - z[idx]) <= cfg.consistency * z[idx])
     idx, ci, ri = idx[good], ci[good], ri[good]
-    back = _backproject(other_depth, other, ri, ci)
-    uv_back, _ = _project(back, cam)
+    back = backproject(other_depth, other, ri, ci)
+    uv_back, _ = project(back, cam)
     err = np.hypot(uv_back[:, 0] - (cols[idx] + 0.5), uv_back[:, 1] - (rows[idx] + 0.5))
     ok[idx[err <= cfg.reprojection + math.sqrt(0.5)]] = True
     return ok.reshape(h, w)
@@ -342,7 +307,7 @@ def dense_points(
     for i, cam in enumerate(cameras):
         rows, cols = np.nonzero(np.isfinite(depths[i]))
         kept.append(len(rows))
-        points.append(_backproject(depths[i], cam, rows, cols))
+        points.append(backproject(depths[i], cam, rows, cols))
         colors.append(images[i][rows, cols])
     pts = np.concatenate(points).astype(np.float32)
     cols_ = np.concatenate(colors).astype(np.float32)
@@ -553,7 +518,7 @@ def depth_prior_points(
     for cam, image, depth in zip(cameras, images, depths, strict=True):
         valid = np.isfinite(depth) & (depth > 0)
         rows, cols = np.nonzero(valid)
-        points.append(_backproject(depth, cam, rows, cols))
+        points.append(backproject(depth, cam, rows, cols))
         colors.append(image[rows, cols])
     if not points:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), stats
@@ -569,7 +534,7 @@ def _prior_anchors(
         known = np.isfinite(stereo) & (stereo > 0)
         if known.sum() >= min_anchors:
             return prior[known].astype(np.float64), stereo[known].astype(np.float64), "stereo"
-    uv, z = _project(anchors.astype(np.float64), cam)
+    uv, z = project(anchors.astype(np.float64), cam)
     c, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
     seen = (z > 0) & (c >= 0) & (c < cam.width) & (r >= 0) & (r < cam.height)
     if seen.sum() < min_anchors:

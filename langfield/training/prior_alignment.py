@@ -36,6 +36,7 @@ import cv2
 import numpy as np
 
 from langfield.camera import Camera
+from langfield.training.pixels import cv_pose
 
 __all__ = ["CAP", "alignment_cost", "refine_alignment"]
 
@@ -85,8 +86,7 @@ class _Views:
             rows, cols = rows[keep], cols[keep]
             rays = np.stack([(cols + 0.5 - cam.cx) / cam.fx, (rows + 0.5 - cam.cy) / cam.fy], axis=-1)
             self.grids.append((rays, prior[rows, cols].astype(np.float64)))
-            w2c = cam.world_to_camera().numpy().astype(np.float64)
-            self.poses.append((w2c[:3, :3], w2c[:3, 3]))
+            self.poses.append(cv_pose(cam))
             if anchor is not None:
                 x, z = anchor
                 stride = max(1, len(x) // MAX_ANCHORS)

@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from langfield.camera import Camera
+from langfield.training.pixels import box_mean, cv_pose, gray, window_stats, zncc
 
 __all__ = ["BAND", "GRID", "correct_priors", "band_offsets", "smooth_field"]
 
@@ -55,11 +56,6 @@ AGREE, OFFSET_WEIGHT = 0.06, 5.0  # the agreement round: largest gap counted; we
 MAX_FIT_PIXELS = 40_000  # the agreement term is fitted on a regular grid of at most this many pixels
 
 
-def _pose(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
-    w2c = cam.world_to_camera().numpy().astype(np.float64)
-    return w2c[:3, :3], w2c[:3, 3]
-
-
 def _rays(cam: Camera) -> np.ndarray:
     """[H, W, 3] camera-frame directions with z = 1 through the pixel centres."""
     rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
@@ -70,13 +66,13 @@ def _rays(cam: Camera) -> np.ndarray:
 
 
 def _lift(cam: Camera, rays: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    r, t = _pose(cam)
+    r, t = cv_pose(cam)
     return (rays * depth[..., None] - t) @ r
 
 
 def _into(cam: Camera, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(z, map_x, map_y, inside) of world points [H, W, 3] in ``cam``: cv2.remap coordinates."""
-    r, t = _pose(cam)
+    r, t = cv_pose(cam)
     p = world @ r.T + t
     z = p[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -91,10 +87,6 @@ def _into(cam: Camera, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     )
 
 
-def _box(x: np.ndarray, size: int) -> np.ndarray:
-    return cv2.blur(x, (size, size), borderType=cv2.BORDER_REFLECT_101)
-
-
 def band_offsets(
     cameras: Sequence[Camera], images: Sequence[np.ndarray], depths: Sequence[np.ndarray]
 ) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -107,14 +99,13 @@ def band_offsets(
     Returns:
         Per view ``(offset [H, W], kept [H, W] bool)``: ``depth * exp(offset)`` is the best match.
     """
-    grays = [cv2.cvtColor(np.ascontiguousarray(im, dtype=np.float32), cv2.COLOR_RGB2GRAY) for im in images]
+    grays = [gray(im) for im in images]
     steps = np.linspace(-BAND, BAND, STEPS)
     out = []
     for i, cam in enumerate(cameras):
         size = max(5, 2 * round((WINDOW * cam.width / 160 - 1) / 2) + 1)
         ref = grays[i]
-        mu_r = _box(ref, size)
-        var_r = np.maximum(_box(ref * ref, size) - mu_r * mu_r, 0.0)
+        mu_r, var_r = window_stats(ref, size)
         rays = _rays(cam)
         known = np.isfinite(depths[i]) & (depths[i] > 0)
         base = np.where(known, depths[i], 1.0)
@@ -128,11 +119,9 @@ def band_offsets(
                     continue
                 _, mx, my, inside = _into(other, world)
                 warped = cv2.remap(grays[j], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                mu_s = _box(warped, size)
-                var_s = np.maximum(_box(warped * warped, size) - mu_s * mu_s, 0.0)
-                zncc = (_box(ref * warped, size) - mu_r * mu_s) / np.sqrt(var_r * var_s + 1e-10)
-                seen = _box(inside.astype(np.float32), size) > 0.999
-                total += np.where(seen, zncc, 0.0)
+                score, _ = zncc(ref, mu_r, var_r, warped, size)
+                seen = box_mean(inside.astype(np.float32), size) > 0.999
+                total += np.where(seen, score, 0.0)
                 count += seen
             scores[k] = np.where(count > 0, total / np.maximum(count, 1.0), -1.0)
         best = scores.argmax(axis=0)
@@ -262,12 +251,12 @@ def correct_priors(
         values = np.where(kept, offset - fields[k], 0.5 * gap)
         weights = np.where(kept, OFFSET_WEIGHT, (sampled & (count > 0)).astype(np.float64))
         refitted.append(fields[k] + smooth_field(bases[k], values, weights))
-    for k, field in zip(used, refitted, strict=True):
+    for k, field, (_, kept) in zip(used, refitted, offsets, strict=True):
         result[k] = result[k] * np.exp(field)
         finite = field[np.isfinite(result[k])]
         q = np.quantile(finite, [0.05, 0.95]) if finite.size else (0.0, 0.0)
         stats["views"][k] = {
-            "matched": float(offsets[used.index(k)][1].mean()),
+            "matched": float(kept.mean()),
             "correction": [float(q[0]), float(q[1])],
         }
     stats["seconds"] = time.perf_counter() - t0

@@ -13,7 +13,6 @@ from langfield.camera import Camera
 from langfield.synthetic import distance_to_surfaces, make_room
 from langfield.training.initialisation import (
     PlaneSweepConfig,
-    _project,
     _trimmed_fit,
     dense_points,
     depth_prior_points,
@@ -21,6 +20,7 @@ from langfield.training.initialisation import (
     plane_sweep,
     start_points,
 )
+from langfield.training.pixels import project
 
 W, H = 96, 72
 
@@ -98,7 +98,7 @@ def test_dense_points_of_the_built_in_scene_are_near_its_surfaces(tmp_path) -> N
 
 def _cell_coverage(points: np.ndarray, cam: Camera, cell: int = 8) -> float:
     """Fraction of the view's cell x cell pixel blocks that some point projects into."""
-    uv, z = _project(points.astype(np.float64), cam)
+    uv, z = project(points.astype(np.float64), cam)
     ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
     hit = np.zeros((cam.height // cell, cam.width // cell), dtype=bool)
     rows = (uv[ok, 1] // cell).astype(int).clip(0, hit.shape[0] - 1)
@@ -236,7 +236,7 @@ def test_unknown_method_and_depth_without_priors_are_errors() -> None:
 
 def test_projection_helper_matches_the_camera_convention() -> None:
     cams, _ = plane_views(z=2.0)
-    uv, z = _project(np.array([[0.0, 0.0, -2.0]]), cams[1])
+    uv, z = project(np.array([[0.0, 0.0, -2.0]]), cams[1])
     np.testing.assert_allclose(uv[0], [cams[1].cx, cams[1].cy], atol=1e-9)
     assert z[0] == pytest.approx(2.0)
 
