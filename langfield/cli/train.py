@@ -106,11 +106,12 @@ TRAIN_FLAGS = (
     ),
     _flag(
         "--init-align",
-        choices=["smooth", "views", "anchors"],
+        choices=["fused", "smooth", "views", "anchors"],
         default=None,
         help="how the depth start aligns each view's prior: a line refined until the views agree with "
-        "one another, then a smooth correction from photo-consistency and the other views (smooth, the "
-        "default), the line alone (views), or the line fitted to the view's own stereo (anchors)",
+        "one another, a smooth correction from photo-consistency and the other views, then each pixel "
+        "fused with the views that agree on it (fused, the default), the correction without the fusion "
+        "(smooth), the line alone (views), or the line fitted to the view's own stereo (anchors)",
     ),
     _flag("--bounds", type=bounds_arg, default=None, help="xmin,ymin,zmin,xmax,ymax,zmax to initialise in"),
     _flag("--no-densify", action="store_true", help="keep the initial Gaussians (no clone/split/prune)"),

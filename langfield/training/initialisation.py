@@ -15,8 +15,8 @@ forms from it. With the poses known, the photos alone give surface points:
   do; sparse on three views (about a hundred points on LLFF fern).
 - ``depth``: the scene's depth prior of each training view, aligned per view by scale and shift to
   the dense points it sees, the views' lines then refined to agree with one another
-  (:mod:`langfield.training.prior_alignment`), each view's prior corrected by a smooth field
-  (:mod:`langfield.training.prior_correction`), and back-projected.
+  (:mod:`langfield.training.prior_alignment`), each view's prior corrected by a smooth field and the
+  views' depths fused where they agree (:mod:`langfield.training.prior_correction`), and back-projected.
 - ``random``: uniform in the bounds (DNGaussian), also the fallback when a method finds too few
   points, with a warning.
 
@@ -49,7 +49,7 @@ from langfield.training.pixels import (
     zncc,
 )
 from langfield.training.prior_alignment import refine_alignment
-from langfield.training.prior_correction import correct_priors
+from langfield.training.prior_correction import correct_priors, fuse_views
 
 __all__ = [
     "INIT_ALIGNS",
@@ -68,8 +68,9 @@ InitMethod = Literal["dense", "sfm", "depth", "random"]
 INIT_METHODS: tuple[str, ...] = ("dense", "sfm", "depth", "random")
 # How the ``depth`` start aligns each view's prior: "views" refines the per-view fits so that the views
 # agree with one another (langfield.training.prior_alignment), "smooth" then corrects each view's prior
-# by a smooth field (langfield.training.prior_correction), "anchors" keeps each view's own fit.
-INIT_ALIGNS: tuple[str, ...] = ("smooth", "views", "anchors")
+# by a smooth field (langfield.training.prior_correction), "fused" then moves each pixel to the mean of
+# the views that agree on it (one layer per surface), "anchors" keeps each view's own fit.
+INIT_ALIGNS: tuple[str, ...] = ("fused", "smooth", "views", "anchors")
 # Below this many photo points a start is not trusted: random instead, with a warning.
 MIN_POINTS = 200
 
@@ -360,7 +361,7 @@ def start_points(
     priors: list[np.ndarray] | None = None,
     depth_kind: str | None = None,
     sweep: PlaneSweepConfig = PlaneSweepConfig(),
-    align: str = "smooth",
+    align: str = "fused",
 ) -> StartPoints:
     """The start of training: ``num`` points by ``method`` (module docstring), the last ``fill`` of
     them random in ``bounds``.
@@ -461,7 +462,7 @@ def depth_prior_points(
     anchors: np.ndarray,
     stereo: list[np.ndarray] | tuple[np.ndarray, ...] | None = None,
     min_anchors: int = 50,
-    align: str = "smooth",
+    align: str = "fused",
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Every pixel of each training view's depth prior, aligned to metric depths and back-projected.
 
@@ -473,8 +474,9 @@ def depth_prior_points(
     are then refined so that the views' aligned priors agree with one another
     (:func:`langfield.training.prior_alignment.refine_alignment`); ``"smooth"`` also corrects each
     view's aligned prior by a smooth field, from photo-consistency and the other views
-    (:func:`langfield.training.prior_correction.correct_priors`); ``"anchors"`` keeps each view's own
-    fit.
+    (:func:`langfield.training.prior_correction.correct_priors`); ``"fused"`` then moves each pixel's
+    depth to the mean of the views that agree on it (:func:`~langfield.training.prior_correction.fuse_views`);
+    ``"anchors"`` keeps each view's own fit.
 
     Returns:
         ``(points [N, 3], colors [N, 3], stats)`` with the per-view fit in ``stats``.
@@ -496,7 +498,7 @@ def depth_prior_points(
         known.append((x, z))
         fits.append({"scale": float(a), "shift": float(b), "anchors": inliers, "from": source})
     stats: dict = {"fits": fits}
-    if align in ("views", "smooth"):
+    if align in ("views", "smooth", "fused"):
         t0 = time.perf_counter()
         refined = refine_alignment(cameras, priors, depth_kind, lines, known)
         for fit, line in zip(fits, refined, strict=True):
@@ -512,8 +514,10 @@ def depth_prior_points(
         target = line[0] * prior.astype(np.float64) + line[1]
         depth = 1.0 / np.where(target > 1e-12, target, np.nan) if depth_kind == "disparity" else target
         depths.append(np.where(depth > 0, depth, np.nan))
-    if align == "smooth":
+    if align in ("smooth", "fused"):
         depths, stats["correction"] = correct_priors(cameras, images, depths)
+    if align == "fused":
+        depths, stats["fusion"] = fuse_views(cameras, depths)
     points, colors = [], []
     for cam, image, depth in zip(cameras, images, depths, strict=True):
         valid = np.isfinite(depth) & (depth > 0)

@@ -1,4 +1,4 @@
-"""Each view's aligned depth prior corrected by a smooth field, for the ``depth`` start.
+"""Each view's aligned depth prior corrected by a smooth field, then the views fused, for the ``depth`` start.
 
 A monocular prior's error is not one scale and shift per view: it also bends smoothly across the image
 (the built-in rooms' priors carry about 3 % of smooth multiplicative noise, a power of 1/z and a blur;
@@ -24,6 +24,10 @@ field from the photos and the other views:
   OFFSET_WEIGHT) and, elsewhere, to half its log-depth gap to the other views' corrected priors where
   they see the pixel within 6 % (each side of a gap moves half of it, so two views meet).
 
+Then, in the default start, :func:`fuse_views` moves each pixel's depth to the mean log-depth of its
+view and the other views that agree within AGREE, where both maps are smooth, so that a surface starts
+as one layer rather than one per view.
+
 Where a surface has no texture (a room's plain walls) no offset is kept, and the field there is what
 the textured pixels around it and the other views make of it. The GRID is the built-in prior's own
 noise grid, so on the rooms the field can follow that noise exactly; a network's bend has no grid, and
@@ -44,7 +48,7 @@ import numpy as np
 from langfield.camera import Camera
 from langfield.training.pixels import box_mean, cv_pose, gray, window_stats, zncc
 
-__all__ = ["BAND", "GRID", "correct_priors", "band_offsets", "smooth_field"]
+__all__ = ["BAND", "GRID", "band_offsets", "correct_priors", "fuse_views", "smooth_field"]
 
 BAND, STEPS = 0.12, 49  # log-depth offsets searched around the aligned prior, and how many
 MIN_ZNCC, MIN_MARGIN, MIN_TEXTURE = 0.8, 0.1, 0.02  # a kept match; texture: std of the grey patch
@@ -179,10 +183,23 @@ def smooth_field(
     return field
 
 
-def _gaps(cameras, rays, depths, i: int) -> tuple[np.ndarray, np.ndarray]:
+def _smooth(depth: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the map's log-depth spans less than AGREE over the pixel's 3 x 3 neighbourhood (no
+    depth edge there, and every neighbour known)."""
+    known = np.isfinite(depth) & (depth > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log = np.where(known, np.log(np.where(known, depth, 1.0)), 0.0).astype(np.float32)
+    kernel = np.ones((3, 3), np.uint8)
+    span = cv2.dilate(log, kernel) - cv2.erode(log, kernel)
+    whole = cv2.erode(known.astype(np.uint8), kernel, borderType=cv2.BORDER_REPLICATE) > 0
+    return whole & (span < AGREE)
+
+
+def _gaps(cameras, rays, depths, i: int, smooth=None) -> tuple[np.ndarray, np.ndarray]:
     """Mean log-depth gap of view i's pixels to the other views' depths along i's rays, and the count
     of views that see the pixel within AGREE: the depth along the ray at which j's depth map agrees,
-    by three fixed-point steps (exact for a view behind this one on the same axis)."""
+    by three fixed-point steps (exact for a view behind this one on the same axis). With ``smooth``
+    (per view [H, W] bool, :func:`_smooth`) a view counts only where its map is smooth at the sample."""
     own = depths[i]
     total = np.zeros(own.shape)
     count = np.zeros(own.shape)
@@ -199,6 +216,8 @@ def _gaps(cameras, rays, depths, i: int) -> tuple[np.ndarray, np.ndarray]:
             with np.errstate(divide="ignore", invalid="ignore"):
                 moved = z * seen / zj
                 good = inside & np.isfinite(moved) & (moved > 0) & (np.abs(np.log(moved / own)) < AGREE)
+            if smooth is not None:
+                good &= cv2.remap(smooth[j].astype(np.uint8), mx, my, cv2.INTER_NEAREST) > 0
             z = np.where(good, moved, own)
         with np.errstate(divide="ignore", invalid="ignore"):
             total += np.where(good, np.log(z / own), 0.0)
@@ -259,5 +278,45 @@ def correct_priors(
             "matched": float(kept.mean()),
             "correction": [float(q[0]), float(q[1])],
         }
+    stats["seconds"] = time.perf_counter() - t0
+    return result, stats
+
+
+def fuse_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray]) -> tuple[list[np.ndarray], dict]:
+    """Each view's z-depth moved to the mean log-depth of itself and the other views that see the pixel
+    within AGREE (where along the pixel's ray their depth maps meet it, as in the agreement round).
+
+    Each view's start points come from its own map, so views that disagree by a few percent put one
+    layer per view on a surface; fused, the surface starts as one layer at the views' mean. Only where
+    the maps are smooth (:func:`_smooth`, this view's at the pixel and the other's at the sample):
+    across a depth edge the interpolated depth is neither side's, and averaging it blurs the outline.
+    Rooms of 3 layouts x 3 seeds: docs/figures.md, "One layer per surface".
+
+    Args:
+        cameras: the views.
+        depths: per view ``[H, W]`` z-depth, NaN where unknown (such pixels stay NaN; a view with no
+            finite depth is passed through and lends nothing).
+
+    Returns:
+        ``(fused depths, stats)``; stats: per view the share of its pixels another view agreed with
+        (``fused``, None for a view passed through) and ``seconds``.
+    """
+    if len(cameras) != len(depths):
+        raise ValueError("fuse_views: one depth map per camera")
+    t0 = time.perf_counter()
+    result = [np.asarray(d, np.float64) for d in depths]
+    used = [k for k, d in enumerate(result) if np.isfinite(d).any()]
+    stats: dict = {"views": [None] * len(cameras)}
+    if len(used) >= 2:
+        cams = [cameras[k] for k in used]
+        rays = [_rays(c) for c in cams]
+        current = [result[k] for k in used]
+        smooth = [_smooth(d) for d in current]
+        for k, index in enumerate(used):
+            gap, count = _gaps(cams, rays, current, k, smooth)
+            count = np.where(smooth[k], count, 0.0)
+            # the mean of 1 + count log-depths: this view's and the agreeing views'
+            result[index] = current[k] * np.exp(gap * count / (count + 1.0))
+            stats["views"][index] = {"fused": float((count > 0).mean())}
     stats["seconds"] = time.perf_counter() - t0
     return result, stats

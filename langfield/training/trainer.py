@@ -92,10 +92,12 @@ class TrainConfig:
     init: Literal["auto", "dense", "sfm", "depth", "random"] = "auto"
     # The depth start's alignment: "views" refines each view's prior line, fitted to its own stereo, so
     # that the views agree with one another (langfield.training.prior_alignment); "smooth" then corrects
-    # each view's prior by a smooth field from photo-consistency in a narrow band and the other views
-    # (langfield.training.prior_correction); "anchors" keeps the per-view fits. Rooms of 3 layouts x 3
-    # seeds: docs/figures.md, "Aligning the priors to one another" and "Correcting the priors".
-    init_align: Literal["smooth", "views", "anchors"] = "smooth"
+    # each view's prior by a smooth field from photo-consistency in a narrow band and the other views;
+    # "fused" then moves each pixel to the mean of the views that agree on it, so that a surface starts
+    # as one layer, not one per view (langfield.training.prior_correction); "anchors" keeps the per-view
+    # fits. Rooms of 3 layouts x 3 seeds: docs/figures.md, "Aligning the priors to one another",
+    # "Correcting the priors" and "One layer per surface".
+    init_align: Literal["fused", "smooth", "views", "anchors"] = "fused"
     init_fill: float = 0.1  # random points added, as a fraction of the photo points
     backend: str = "auto"
     num_gaussians: int | None = None

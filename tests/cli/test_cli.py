@@ -418,7 +418,7 @@ def test_train_flags_agree_with_train_config() -> None:
     from langfield.cli import build_parser
     from langfield.io.field_meta import LANGUAGE_FEATURES
     from langfield.raster import BACKENDS
-    from langfield.training.initialisation import INIT_METHODS
+    from langfield.training.initialisation import INIT_ALIGNS, INIT_METHODS
     from langfield.training.trainer import CONFIG_FLAGS, LANGUAGE_DECODES, TrainConfig
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
@@ -435,5 +435,6 @@ def test_train_flags_agree_with_train_config() -> None:
             expected[name] = typing.get_args(hint)
     assert {"language_features", "virtual_directions", "init"} <= set(expected)
     assert expected["language_features"] == LANGUAGE_FEATURES  # what a field.json may say
+    assert expected["init_align"] == INIT_ALIGNS  # what depth_prior_points accepts
     for name, values in expected.items():
         assert tuple(options[CONFIG_FLAGS[name]].choices) == tuple(values), name

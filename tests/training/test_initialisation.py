@@ -146,7 +146,7 @@ def test_depth_prior_points_fit_scale_and_shift() -> None:
     points, colors, stats = depth_prior_points(cams, images, priors, "disparity", anchors, align="views")
     assert len(points) == 3 * W * H and colors.shape == points.shape
     np.testing.assert_allclose(points[:, 2], -2.0, atol=1e-3)
-    # The smooth correction (the default) moves a right prior by photo noise alone: 0.1 % here.
+    # The correction and fusion (the default) move a right prior by photo noise alone: 0.1 % here.
     corrected, _, _ = depth_prior_points(cams, images, priors, "disparity", anchors)
     np.testing.assert_allclose(corrected[:, 2], -2.0, atol=2e-3)
     assert all(fit is not None for fit in stats["fits"])

@@ -10,7 +10,15 @@ import pytest
 
 import langfield as lf
 from langfield.training.initialisation import INIT_ALIGNS, depth_prior_points
-from langfield.training.prior_correction import GRID, _basis, band_offsets, correct_priors, smooth_field
+from langfield.training.prior_correction import (
+    AGREE,
+    GRID,
+    _basis,
+    band_offsets,
+    correct_priors,
+    fuse_views,
+    smooth_field,
+)
 
 W, H = 96, 72
 
@@ -83,15 +91,59 @@ def test_views_without_depths_pass_through_and_bad_arguments_are_refused(views) 
         correct_priors(cams, images[:2], depths)
 
 
-def test_the_depth_start_corrects_by_default_and_records_it(views) -> None:
+def test_fusion_moves_views_that_disagree_a_little_to_their_mean(views) -> None:
+    _, cams, _, depths = views
+    spread = [depths[0] * math.exp(0.02), depths[1] * math.exp(-0.02), depths[2]]
+    fused, stats = fuse_views(cams, spread)
+    for k in range(3):
+        before, after = _error(spread[k], depths[k]), _error(fused[k], depths[k])
+        assert after < 0.6 * before if k < 2 else after < 0.01
+    # A pixel no other view agrees with keeps its depth; the share that moved is what stats report.
+    for k, view in enumerate(stats["views"]):
+        moved = np.abs(np.log(fused[k] / spread[k])) > 1e-9
+        assert 0.2 < view["fused"] < 1.0 and moved.mean() == pytest.approx(view["fused"], abs=0.05)
+        assert np.array_equal(np.isnan(fused[k]), np.isnan(depths[k]))
+        # Nor does a pixel at a depth edge: an interpolated depth there is neither side's.
+        log = np.nan_to_num(np.log(spread[k]), nan=0.0)
+        shifted = [np.roll(log, (dy, dx), (0, 1)) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+        span = np.max(shifted, 0) - np.min(shifted, 0)
+        edge = span > 2 * AGREE
+        edge[[0, -1]] = edge[:, [0, -1]] = False  # np.roll wraps around there
+        assert edge.sum() > 50 and not moved[edge].any()
+    # Views further apart than AGREE leave each other alone, but where their surfaces, scaled about
+    # different cameras, happen to cross (under 1 % of the pixels here).
+    apart = [d * math.exp(f * AGREE) for d, f in zip(depths, (2, -2, 6), strict=True)]
+    kept, stats = fuse_views(cams, apart)
+    for k, view in enumerate(stats["views"]):
+        assert view["fused"] < 0.01
+        assert np.nanmax(np.abs(np.log(kept[k] / apart[k]))) < AGREE
+
+
+def test_fusion_passes_views_without_depths_through_and_refuses_bad_arguments(views) -> None:
+    _, cams, _, depths = views
+    unknown = np.full((H, W), np.nan)
+    alone, stats = fuse_views(cams, [depths[0], unknown, unknown])
+    assert np.array_equal(alone[0], depths[0], equal_nan=True) and stats["views"] == [None, None, None]
+    two, stats = fuse_views(cams, [depths[0] * 1.01, unknown, depths[2]])
+    assert np.isnan(two[1]).all() and stats["views"][1] is None and stats["views"][0]["fused"] > 0
+    with pytest.raises(ValueError, match="one depth map per camera"):
+        fuse_views(cams[:2], depths)
+
+
+def test_the_depth_start_corrects_and_fuses_by_default_and_records_it(views) -> None:
     _, cams, images, depths = views
-    assert INIT_ALIGNS[0] == "smooth"
+    assert INIT_ALIGNS[0] == "fused"
     priors = [(1.0 / d).astype(np.float32) for d in depths]
     stereo = [np.where(np.indices(d.shape).sum(0) % 5 == 0, d, np.nan) for d in depths]
     points, _, stats = depth_prior_points(cams, images, priors, "disparity", np.zeros((0, 3)), stereo)
     assert [v is not None for v in stats["correction"]["views"]] == [True] * 3
+    assert [v is not None for v in stats["fusion"]["views"]] == [True] * 3
     assert len(points) == sum(int(np.isfinite(d).sum()) for d in depths)
     _, _, lines_only = depth_prior_points(
         cams, images, priors, "disparity", np.zeros((0, 3)), stereo, align="views"
     )
     assert "correction" not in lines_only and "align_seconds" in lines_only
+    _, _, unfused = depth_prior_points(
+        cams, images, priors, "disparity", np.zeros((0, 3)), stereo, align="smooth"
+    )
+    assert "correction" in unfused and "fusion" not in unfused
