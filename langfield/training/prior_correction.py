@@ -187,8 +187,7 @@ def _smooth(depth: np.ndarray) -> np.ndarray:
     """[H, W] bool: the map's log-depth spans less than AGREE over the pixel's 3 x 3 neighbourhood (no
     depth edge there, and every neighbour known)."""
     known = np.isfinite(depth) & (depth > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log = np.where(known, np.log(np.where(known, depth, 1.0)), 0.0).astype(np.float32)
+    log = np.log(np.where(known, depth, 1.0)).astype(np.float32)
     kernel = np.ones((3, 3), np.uint8)
     span = cv2.dilate(log, kernel) - cv2.erode(log, kernel)
     whole = cv2.erode(known.astype(np.uint8), kernel, borderType=cv2.BORDER_REPLICATE) > 0
@@ -199,7 +198,7 @@ def _gaps(cameras, rays, depths, i: int, smooth=None) -> tuple[np.ndarray, np.nd
     """Mean log-depth gap of view i's pixels to the other views' depths along i's rays, and the count
     of views that see the pixel within AGREE: the depth along the ray at which j's depth map agrees,
     by three fixed-point steps (exact for a view behind this one on the same axis). With ``smooth``
-    (per view [H, W] bool, :func:`_smooth`) a view counts only where its map is smooth at the sample."""
+    (per view [H, W] uint8, :func:`_smooth`) a view counts only where its map is smooth at the sample."""
     own = depths[i]
     total = np.zeros(own.shape)
     count = np.zeros(own.shape)
@@ -217,7 +216,7 @@ def _gaps(cameras, rays, depths, i: int, smooth=None) -> tuple[np.ndarray, np.nd
                 moved = z * seen / zj
                 good = inside & np.isfinite(moved) & (moved > 0) & (np.abs(np.log(moved / own)) < AGREE)
             if smooth is not None:
-                good &= cv2.remap(smooth[j].astype(np.uint8), mx, my, cv2.INTER_NEAREST) > 0
+                good &= cv2.remap(smooth[j], mx, my, cv2.INTER_NEAREST) > 0
             z = np.where(good, moved, own)
         with np.errstate(divide="ignore", invalid="ignore"):
             total += np.where(good, np.log(z / own), 0.0)
@@ -311,10 +310,10 @@ def fuse_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray]) -> tuple
         cams = [cameras[k] for k in used]
         rays = [_rays(c) for c in cams]
         current = [result[k] for k in used]
-        smooth = [_smooth(d) for d in current]
+        smooth = [_smooth(d).astype(np.uint8) for d in current]  # cv2.remap samples uint8, not bool
         for k, index in enumerate(used):
             gap, count = _gaps(cams, rays, current, k, smooth)
-            count = np.where(smooth[k], count, 0.0)
+            count = np.where(smooth[k] > 0, count, 0.0)
             # the mean of 1 + count log-depths: this view's and the agreeing views'
             result[index] = current[k] * np.exp(gap * count / (count + 1.0))
             stats["views"][index] = {"fused": float((count > 0).mean())}
