@@ -11,6 +11,7 @@ __all__ = [
     "IMAGES_DIR",
     "LATENT_NORM_EPS",
     "MASKS_DIR",
+    "POINTS_FILE",
     "SEGMENTATIONS_DIR",
     "TEXT_TABLE_FILE",
     "TRANSFORMS_FILE",
@@ -23,6 +24,9 @@ DEPTHS_DIR = "depths"
 FEATURES_DIR = "language_features"
 SEGMENTATIONS_DIR = "segmentations"
 MASKS_DIR = "masks"
+# The sparse points of a scene that `langfield capture` posed (nerfstudio's name; transforms.json's
+# `ply_file_path` names it).
+POINTS_FILE = "sparse_pc.ply"
 
 # The copy of the scene's phrase table a saved field keeps beside field.json (text-encoder "table"), and
 # the name of that table in a scene folder.

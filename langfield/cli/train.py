@@ -98,10 +98,11 @@ TRAIN_FLAGS = (
     _flag("--num-gaussians", type=int, default=None, help="initial Gaussians (default: sized to the scene)"),
     _flag(
         "--init",
-        choices=["auto", "dense", "sfm", "depth", "random"],
+        choices=["auto", "dense", "sfm", "depth", "points", "random"],
         default="auto",
         help="where the Gaussians start: plane-sweep stereo on the training views, COLMAP's sparse SIFT "
-        "points, the depth prior aligned to the stereo points, or random in the bounds (default auto: "
+        "points, the depth prior aligned to the stereo points, the scene's point cloud (sparse_pc.ply "
+        "of langfield capture), or random in the bounds (default auto: "
         "depth when every training view has a depth prior, else dense)",
     ),
     _flag(

@@ -46,6 +46,7 @@ class Layout:
     aabb: np.ndarray | None = None
     view_bounds: np.ndarray | None = None  # [N, 2] LLFF near, far per view
     background: np.ndarray | None = None
+    points_path: Path | None = None  # the scene's point cloud (transforms.json's ply_file_path)
 
 
 def depth_kind(root: Path, path: Path, meta: dict) -> str | None:

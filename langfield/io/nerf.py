@@ -24,7 +24,10 @@ def read_transforms(root: Path) -> Layout:
     path = root / TRANSFORMS_FILE
     meta = _load_json(path)
     frames = [_parse_frame(path, meta, i, frame) for i, frame in enumerate(meta["frames"])]
-    return _json_layout(root, path, meta, frames)
+    layout = _json_layout(root, path, meta, frames)
+    return replace(
+        layout, view_bounds=_view_bounds(path, meta["frames"]), points_path=_points_path(root, path, meta)
+    )
 
 
 def read_blender(root: Path) -> Layout:
@@ -161,6 +164,34 @@ def _positive_int(value: object, key: str, where: str) -> int:
     if number < 1 or number != int(number):
         raise SceneError(f"{where}: {key} must be a positive whole number, got {value!r}")
     return int(number)
+
+
+def _points_path(root: Path, path: Path, meta: dict) -> Path | None:
+    """The point cloud that ``ply_file_path`` names (nerfstudio's key), or None without the key."""
+    value = meta.get("ply_file_path")
+    if value is None:
+        return None
+    if not isinstance(value, str) or not (root / value).is_file():
+        raise SceneError(f"{path}: ply_file_path {value!r} is not a file in {root}")
+    return root / value
+
+
+def _view_bounds(path: Path, frames: list[dict]) -> np.ndarray | None:
+    """[N, 2] per-frame LLFF near and far (``near`` / ``far``, as ``langfield capture`` writes them from
+    the sparse points' depths), or None when no frame has them; a frame with one needs both, all do."""
+    given = [("near" in f or "far" in f) for f in frames]
+    if not any(given):
+        return None
+    bounds = np.zeros((len(frames), 2))
+    for i, frame in enumerate(frames):
+        where = f"{path}: frame {i} ({frame['file_path']})"
+        if "near" not in frame or "far" not in frame:
+            raise SceneError(f"{where}: needs both near and far, as the other frames give them")
+        near, far = _number(frame["near"], "near", where), _number(frame["far"], "far", where)
+        if not 0 <= near < far:
+            raise SceneError(f"{where}: near and far must satisfy 0 <= near < far, got {near}, {far}")
+        bounds[i] = near, far
+    return bounds
 
 
 def _aabb(path: Path, meta: dict) -> np.ndarray | None:

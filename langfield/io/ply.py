@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from langfield.atomic import atomic_path
+from langfield.io.layout import SceneError
 
 SH_C0 = 0.28209479177387814
 N_REST = 45  # degree-3 SH: 15 coefficients x 3 colours
@@ -23,6 +24,28 @@ def _fields() -> list[str]:
     names += [f"f_rest_{i}" for i in range(N_REST)]
     names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     return names
+
+
+def read_points(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A point cloud PLY (x y z, optional red green blue), such as ``sparse_pc.ply``: ([P, 3] float32
+    points, [P, 3] float32 colours in [0, 1], grey where the file has none); read with Open3D.
+
+    Raises:
+        SceneError: the file is missing, unreadable, empty or holds non-finite points.
+    """
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"{path}: point cloud not found")
+    cloud = o3d.io.read_point_cloud(str(path))
+    points = np.asarray(cloud.points, dtype=np.float32)
+    if len(points) == 0:
+        raise SceneError(f"{path}: no points could be read (not a point cloud PLY, or empty)")
+    if not np.isfinite(points).all():
+        raise SceneError(f"{path}: has NaN or inf coordinates")
+    colors = np.asarray(cloud.colors, dtype=np.float32) if cloud.has_colors() else np.full_like(points, 0.5)
+    return points, colors
 
 
 def write_gaussian_ply(

@@ -82,6 +82,7 @@ class Scene:
         background: [3] float32 white when the images carry alpha (composited on it), else None.
         resolution: the downscale factor applied to the native images (1.0 = native).
         text_embeddings_path: `text_embeddings.npz` if the folder has one, else None.
+        points_path: the scene's point cloud (transforms.json's `ply_file_path`), else None.
     """
 
     def __init__(
@@ -107,6 +108,7 @@ class Scene:
         self._index = {view.name: i for i, view in enumerate(self.views)}
         embeddings = self.root / TEXT_TABLE_FILE
         self.text_embeddings_path = embeddings if embeddings.is_file() else None
+        self.points_path = layout.points_path
 
     def __repr__(self) -> str:
         counts = {s: len(self.names(s)) for s in SPLITS}

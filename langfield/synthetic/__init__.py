@@ -83,6 +83,7 @@ __all__ = [
     "distance_to_surfaces",
     "distances_to_objects",
     "make_room",
+    "render_room",
     "room_layout",
 ]
 
@@ -131,16 +132,11 @@ def make_room(
     for sub in (IMAGES_DIR, DEPTHS_DIR, FEATURES_DIR, SEGMENTATIONS_DIR, "gt/depth", "gt/ids"):
         (out / sub).mkdir(parents=True, exist_ok=True)
 
-    prims = room_primitives(np.random.default_rng([seed, STREAM_LAYOUT]), scale, layout)
-    phases = np.random.default_rng([seed, STREAM_LAYOUT, 1]).uniform(0, 2 * np.pi, (len(prims), 4))
+    prims, phases, raycaster = _room(seed, layout, scale)
     # Every label of every group, whether or not this layout holds it: a query for an absent object
     # is answered (by a low relevancy), not refused.
     concepts = concept_vectors(room_primitives(np.random.default_rng(0), scale), seed)
     cameras = room_cameras(width, height, n_train, n_test, scale)
-    raycaster = o3d.t.geometry.RaycastingScene()
-    for prim in prims:  # geometry id i is primitive i
-        raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(prim.mesh))
-
     for view, cam in enumerate(cameras):
         rgb = render_rgb(raycaster, cam, prims, phases)
         depth, ids = render_depth_ids(raycaster, cam)
@@ -160,6 +156,37 @@ def make_room(
     write_text_embeddings(out / TEXT_TABLE_FILE, concepts, seed)
     write_ground_truth_mesh(out / "gt", prims)
     return out
+
+
+def _room(seed: int, layout: int, scale: float) -> tuple[list[Primitive], np.ndarray, object]:
+    """The room's primitives, their texture phases and a ray caster holding them (geometry id i is
+    primitive i)."""
+    prims = room_primitives(np.random.default_rng([seed, STREAM_LAYOUT]), scale, layout)
+    phases = np.random.default_rng([seed, STREAM_LAYOUT, 1]).uniform(0, 2 * np.pi, (len(prims), 4))
+    raycaster = o3d.t.geometry.RaycastingScene()
+    for prim in prims:
+        raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(prim.mesh))
+    return prims, phases, raycaster
+
+
+def render_room(
+    cameras: list[Camera], *, seed: int = 0, layout: int = 0, scale: float = 1.0
+) -> list[np.ndarray]:
+    """The room of :func:`make_room` (same ``seed``, ``layout``, ``scale``) seen from any cameras: one
+    [H, W, 3] uint8 RGB image each, composited on white (for videos and photo sets of a known scene).
+
+    Example:
+        >>> cam = Camera.look_at(eye=(0.5, -1.5, 1.5), target=(0, 0.8, 0.55), width=32, height=24)
+        >>> render_room([cam])[0].shape
+        (24, 32, 3)
+    """
+    prims, phases, raycaster = _room(seed, layout, scale)
+    images = []
+    for cam in cameras:
+        rgba = render_rgb(raycaster, cam, prims, phases).astype(np.float32) / 255.0
+        rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
+        images.append(np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8))
+    return images
 
 
 def _write_transforms(

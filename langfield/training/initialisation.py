@@ -17,6 +17,9 @@ forms from it. With the poses known, the photos alone give surface points:
   the dense points it sees, the views' lines then refined to agree with one another
   (:mod:`langfield.training.prior_alignment`), each view's prior corrected by a smooth field and the
   views' depths fused where they agree (:mod:`langfield.training.prior_correction`), and back-projected.
+- ``points``: the scene's own point cloud (``sparse_pc.ply``, which ``langfield capture`` writes from
+  COLMAP's model of every frame it posed, as nerfstudio's splatfacto starts from it); it holds points
+  that only the test views saw, so a held-out score with it is not a three-view score.
 - ``random``: uniform in the bounds (DNGaussian), also the fallback when a method finds too few
   points, with a warning.
 
@@ -64,8 +67,8 @@ __all__ = [
     "stereo_depths",
 ]
 
-InitMethod = Literal["dense", "sfm", "depth", "random"]
-INIT_METHODS: tuple[str, ...] = ("dense", "sfm", "depth", "random")
+InitMethod = Literal["dense", "sfm", "depth", "points", "random"]
+INIT_METHODS: tuple[str, ...] = ("dense", "sfm", "depth", "points", "random")
 # How the ``depth`` start aligns each view's prior: "views" refines the per-view fits so that the views
 # agree with one another (langfield.training.prior_alignment), "smooth" then corrects each view's prior
 # by a smooth field (langfield.training.prior_correction), "fused" then moves each pixel to the mean of
@@ -362,12 +365,13 @@ def start_points(
     depth_kind: str | None = None,
     sweep: PlaneSweepConfig = PlaneSweepConfig(),
     align: str = "fused",
+    scene_points: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> StartPoints:
     """The start of training: ``num`` points by ``method`` (module docstring), the last ``fill`` of
     them random in ``bounds``.
 
     Args:
-        method: "dense", "sfm", "depth" or "random".
+        method: "dense", "sfm", "depth", "points" or "random".
         cameras, images: the training views.
         bounds: [2, 3] scene box.
         num: the number of Gaussians to start with (photo points are thinned or topped up to
@@ -376,6 +380,7 @@ def start_points(
         priors, depth_kind, align: the training views' depth priors and how they are aligned
             (``method="depth"``, :func:`depth_prior_points`).
         sweep: plane-sweep settings.
+        scene_points: the scene's point cloud ([P, 3], colours [P, 3] in [0, 1]) for "points".
 
     Returns:
         :class:`StartPoints`; ``method`` is "random" when the photos gave fewer than MIN_POINTS points
@@ -386,24 +391,10 @@ def start_points(
     bounds = np.asarray(bounds, dtype=np.float64)
     t0 = time.perf_counter()
     stats: dict = {"method": method}
-    depth_maps = None
-    photo = np.zeros((0, 3), np.float32)
-    colors = np.zeros((0, 3), np.float32)
     wanted = max(1, round(num / (1.0 + fill)))
-    if method in ("dense", "depth"):
-        photo, colors, stats["dense"] = dense_points(
-            cameras, images, bounds, replace(sweep, max_points=wanted)
-        )
-        if "depths" in stats["dense"]:  # not when there is one view
-            depth_maps = tuple(stats["dense"].pop("depths"))
-    if method == "sfm":
-        photo, colors, stats["sfm"] = sfm_points(cameras, images)
-        photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
-    if method == "depth":
-        photo, colors, stats["depth"] = depth_prior_points(
-            cameras, images, priors, depth_kind, photo, depth_maps, align=align
-        )
-        photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
+    photo, colors, depth_maps = _photo_points(
+        method, cameras, images, bounds, wanted, stats, priors, depth_kind, sweep, align, scene_points
+    )
     used = method
     if method != "random" and len(photo) < MIN_POINTS:
         warnings.warn(
@@ -429,6 +420,53 @@ def start_points(
         seconds=time.perf_counter() - t0,
     )
     return StartPoints(points, colors, used, stats, depth_maps if used != "random" else None)
+
+
+def _photo_points(
+    method: str,
+    cameras: list[Camera],
+    images: list[np.ndarray],
+    bounds: np.ndarray,
+    wanted: int,
+    stats: dict,
+    priors: list[np.ndarray] | None,
+    depth_kind: str | None,
+    sweep: PlaneSweepConfig,
+    align: str,
+    scene_points: tuple[np.ndarray, np.ndarray] | None,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...] | None]:
+    """The points ``method`` finds (at most ``wanted``), their colours and the stereo depth maps it
+    computed; each stage's stats go into ``stats``."""
+    depth_maps = None
+    photo = colors = np.zeros((0, 3), np.float32)
+    if method in ("dense", "depth"):
+        photo, colors, stats["dense"] = dense_points(
+            cameras, images, bounds, replace(sweep, max_points=wanted)
+        )
+        if "depths" in stats["dense"]:  # not when there is one view
+            depth_maps = tuple(stats["dense"].pop("depths"))
+    if method == "sfm":
+        photo, colors, stats["sfm"] = sfm_points(cameras, images)
+        photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
+    if method == "points":
+        photo, colors, stats["points"] = _file_points(scene_points, bounds, wanted)
+    if method == "depth":
+        photo, colors, stats["depth"] = depth_prior_points(
+            cameras, images, priors, depth_kind, photo, depth_maps, align=align
+        )
+        photo, colors = _thin(*_inside(photo, colors, bounds), wanted)
+    return photo, colors, depth_maps
+
+
+def _file_points(
+    scene_points: tuple[np.ndarray, np.ndarray] | None, bounds: np.ndarray, wanted: int
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The scene's point cloud inside ``bounds``, thinned to ``wanted``, and what the stats record."""
+    if scene_points is None:
+        raise ValueError("init 'points' needs the scene's point cloud")
+    inside, colors = _inside(*scene_points, bounds)
+    points, colors = _thin(inside, colors, wanted)
+    return points, colors, {"file_points": len(scene_points[0]), "inside_bounds": len(inside)}
 
 
 def _top_up(

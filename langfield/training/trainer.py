@@ -39,6 +39,8 @@ from encoders.protocols import LEVELS
 from langfield.camera import Camera
 from langfield.field import GridFeatures, LanguageField, Render, color_field_spec
 from langfield.io.field_meta import LANGUAGE_DECODES, LANGUAGE_FEATURES
+from langfield.io.layout import SceneError
+from langfield.io.ply import read_points
 from langfield.io.scene import Scene
 from langfield.model import gaussians as G
 from langfield.model.colour import ColorField
@@ -89,7 +91,7 @@ class TrainConfig:
     # (init_method). Three views' plane sweep resolves 5-7 % of a room's pixels, a third of them off by
     # more than 2 %, and the start is topped up around them; the aligned prior gives every pixel a point.
     # Rooms of 3 layouts x 3 seeds: docs/figures.md, "A start from the depth prior".
-    init: Literal["auto", "dense", "sfm", "depth", "random"] = "auto"
+    init: Literal["auto", "dense", "sfm", "depth", "points", "random"] = "auto"
     # The depth start's alignment: "views" refines each view's prior line, fitted to its own stereo, so
     # that the views agree with one another (langfield.training.prior_alignment); "smooth" then corrects
     # each view's prior by a smooth field from photo-consistency in a narrow band and the other views;
@@ -628,6 +630,11 @@ class ViewTargets:
 def init_method(scene: Scene, cfg: TrainConfig) -> str:
     """``cfg.init`` with "auto" resolved: "depth" when every training view has a depth prior and
     training uses it (``cfg.depth`` not False), else "dense"."""
+    if cfg.init == "points" and scene.points_path is None:
+        raise SceneError(
+            f"--init points: {scene.root} has no point cloud (transforms.json's ply_file_path, as "
+            "langfield capture writes it)"
+        )
     if cfg.init != "auto":
         return cfg.init
     names = scene.names("train")
@@ -654,6 +661,7 @@ def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
         priors=[scene.depth(c.name) for c in train_cams] if method == "depth" else None,
         depth_kind=scene.depth_kind,
         align=cfg.init_align,
+        scene_points=read_points(scene.points_path) if method == "points" else None,
     )
 
 
