@@ -39,6 +39,7 @@ __version__ = "0.1.0"
 # subpackages (docs/layout.md).
 _LAZY_SUBMODULES = {
     "ablate": "langfield.eval.ablate",
+    "capture": "langfield.capture",
     "bench": "langfield.eval.bench",
     "geometry_eval": "langfield.eval.geometry",
     "query": "langfield.query",

@@ -30,8 +30,10 @@ from langfield.atomic import check_writable_folder
 from langfield.capture.frames import (
     CaptureInputError,
     InputSummary,
+    focal_pixels,
     inspect_input,
     store_photos,
+    stored_size,
     video_frames,
 )
 from langfield.capture.poses import MIN_FRAMES, PoseModel, PoseResult, Progress, solve_poses
@@ -147,7 +149,7 @@ def capture(
     check_options(options)
     summary = inspect_input(source)
     check_options(options, summary)
-    _check_out(out, options.force)
+    _check_out(out, options.force, source)
     staging = out.parent / f".{out.name}.capture-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
     try:
@@ -158,8 +160,10 @@ def capture(
     return report
 
 
-def _check_out(out: Path, force: bool) -> None:
+def _check_out(out: Path, force: bool, source: Path) -> None:
     check_writable_folder(out, "scene")
+    if source.resolve() == out.resolve() or out.resolve() in source.resolve().parents:
+        raise CaptureInputError(f"{out}: holds the input {source}; give another --out")
     if out.exists() and not force and (not out.is_dir() or any(out.iterdir())):
         raise CaptureInputError(f"{out}: already exists; give --force to replace it")
 
@@ -198,8 +202,16 @@ def _run(
     t0 = time.perf_counter()
     work = staging / "colmap"
     work.mkdir()
+    priors = _focal_priors(summary, options.max_size)
     result = solve_poses(
-        frames_dir, files, work, camera=camera, matching=matching, verbose=options.verbose, progress=progress
+        frames_dir,
+        files,
+        work,
+        camera=camera,
+        matching=matching,
+        focal_priors=priors,
+        verbose=options.verbose,
+        progress=progress,
     )
     seconds["poses"] = time.perf_counter() - t0
     _check_registered(result, files, stems)
@@ -212,6 +224,7 @@ def _run(
             "fps": summary.fps,
         },
         "options": {**asdict(options), "camera": camera, "matching": matching},
+        "focal_priors_px": {stems[f]: round(v, 2) for f, v in priors.items()},
         "frames": None
         if choice is None
         else {
@@ -236,6 +249,15 @@ def _run(
     report["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
     (staging / "scene" / REPORT_FILE).write_text(json.dumps(report, indent=2))
     return report
+
+
+def _focal_priors(summary: InputSummary, max_size: int) -> dict[str, float]:
+    """File name -> focal length in pixels at the stored size, for the photos whose EXIF gives one."""
+    priors = {}
+    for name, focal, size in zip(summary.names, summary.focal_35mm, summary.sizes, strict=False):
+        if focal is not None:
+            priors[f"{name}.png"] = focal_pixels(focal, *stored_size(*size, max_size))
+    return priors
 
 
 def _model_report(model: PoseModel, stems: dict[str, str]) -> dict:
@@ -302,5 +324,7 @@ def _move_into_place(built: Path, out: Path) -> None:
         old = out.parent / f".{out.name}.replaced-{os.getpid()}"
         os.replace(out, old)
     os.replace(built, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+    if old is not None and old.is_dir():
+        shutil.rmtree(old, ignore_errors=True)
+    elif old is not None:
+        old.unlink()

@@ -17,8 +17,10 @@ motion or repeating the last one while the camera rests. :func:`video_frames` ke
 4. a second decoding pass stores the kept frames, each named by its time stamp (``t012.345s`` is
    12.345 s into the video).
 
-Photos are kept as they are (the user chose them), in file-name order, named by their file stems.
-Every frame is stored at most ``max_size`` pixels on its longer side.
+Photos are kept as they are (the user chose them), in file-name order, named by their file stems;
+a photo's EXIF 35 mm-equivalent focal length (Pillow reads it; OpenCV does not) becomes COLMAP's
+focal-length prior, which few photos need most. Every frame is stored at most ``max_size`` pixels on
+its longer side.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ class InputSummary:
         sizes: (width, height) of each photo, or of the video's frames.
         frames: the video's frame count as its container states it (photos: their number).
         fps: the video's frame rate (0 for photos).
+        focal_35mm: each photo's EXIF 35 mm-equivalent focal length in millimetres, or None.
     """
 
     kind: str
@@ -73,6 +76,7 @@ class InputSummary:
     sizes: tuple[tuple[int, int], ...]
     frames: int
     fps: float = 0.0
+    focal_35mm: tuple[float | None, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -117,7 +121,30 @@ def _inspect_photos(folder: Path) -> InputSummary:
         seen[file.stem] = file
         image = _read_photo(file)
         sizes.append((image.shape[1], image.shape[0]))
-    return InputSummary("photos", tuple(files), tuple(seen), tuple(sizes), len(files))
+    focal = tuple(exif_focal_35mm(f) for f in files)
+    return InputSummary("photos", tuple(files), tuple(seen), tuple(sizes), len(files), focal_35mm=focal)
+
+
+def exif_focal_35mm(path: Path) -> float | None:
+    """The photo's EXIF FocalLengthIn35mmFilm (tag 0xA405) in millimetres, or None where it has none."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            value = image.getexif().get_ifd(0x8769).get(0xA405)
+    except (OSError, UnidentifiedImageError, ValueError):
+        return None
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) and value > 0 else None
+
+
+def focal_pixels(focal_35mm: float, width: int, height: int) -> float:
+    """The focal length in pixels of a 35 mm-equivalent one: the equivalent keeps the diagonal field of
+    view of a 36 x 24 mm frame (43.27 mm diagonal)."""
+    return focal_35mm * math.hypot(width, height) / math.hypot(36.0, 24.0)
 
 
 def _read_photo(path: Path) -> np.ndarray:

@@ -210,6 +210,11 @@ def test_an_existing_scene_is_kept_unless_forced(tmp_path, three_photos, capsys,
     assert main(["capture", str(three_photos), "--out", str(out), "--force"]) == 2
     assert (out / "mine.txt").read_text() == "keep"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "photos", "scene"]
+    # The input itself, or a folder holding it, is never the output, forced or not.
+    for target in (three_photos, tmp_path):
+        assert main(["capture", str(three_photos), "--out", str(target), "--force"]) == 2
+        assert "holds the input" in capsys.readouterr().err
+    assert len(list(three_photos.iterdir())) == 3
 
 
 @pytest.mark.slow
@@ -223,3 +228,26 @@ def test_the_readme_commands_run_on_a_photo_folder(tmp_path, capsys) -> None:
     assert main(argv) == 0
     assert (tmp_path / "my_field" / "field.safetensors").is_file()
     shutil.rmtree(tmp_path / "my_field")
+
+
+def test_three_photos_with_an_exif_focal_length_are_posed(tmp_path) -> None:
+    """Three photos are the least a scene needs; their EXIF 35 mm focal length (30 mm: the room's 60
+    degree lens at 320 x 240 is 277 pixels) starts COLMAP's focal length (without it: 3.3 degrees)."""
+    from PIL import Image
+
+    cams = arc_cameras(3, span=15.0)
+    photos = tmp_path / "phone"
+    photos.mkdir()
+    for cam, rgb in zip(cams, render_room(cams), strict=True):
+        image = Image.fromarray(rgb)
+        exif = image.getexif()
+        exif.get_ifd(0x8769)[0xA405] = 30  # FocalLengthIn35mmFilm
+        image.save(photos / f"IMG_{cam.name}.jpg", quality=95, exif=exif)
+    report = capture(photos, tmp_path / "scene", CaptureOptions())
+    assert report["focal_priors_px"] == {f"IMG_{c.name}": 277.35 for c in cams}
+    scene = load_scene(tmp_path / "scene")
+    assert scene.names("train") == ["IMG_000", "IMG_001", "IMG_002"] and scene.names("test") == []
+    errors = pose_errors(
+        np.array([scene.camera(n).c2w for n in scene.names("all")]), np.array([c.c2w for c in cams])
+    )
+    assert errors["rotation_deg"].max() < 2.5

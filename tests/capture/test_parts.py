@@ -203,3 +203,19 @@ def test_init_points_starts_from_the_point_cloud_and_needs_one(tmp_path) -> None
     scene = load_scene(_scene(tmp_path, [{}] * 3, {}))
     with pytest.raises(SceneError, match="--init points: .* has no point cloud"):
         init_method(scene, TrainConfig(init="points"))
+
+
+def test_exif_focal_length_is_read_where_a_photo_has_one(tmp_path) -> None:
+    from PIL import Image
+
+    from langfield.capture.frames import exif_focal_35mm, focal_pixels
+
+    image = Image.fromarray(np.zeros((30, 40, 3), np.uint8))
+    exif = image.getexif()
+    exif.get_ifd(0x8769)[0xA405] = 26
+    image.save(tmp_path / "a.jpg", exif=exif)
+    image.save(tmp_path / "b.png")
+    assert exif_focal_35mm(tmp_path / "a.jpg") == 26.0
+    assert exif_focal_35mm(tmp_path / "b.png") is None
+    # 35 mm-equivalent keeps the diagonal field of view of a 36 x 24 mm frame.
+    assert abs(focal_pixels(36.0, 3600, 2400) - 3600) < 1e-9
