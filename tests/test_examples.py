@@ -42,3 +42,16 @@ def test_language_losses_tabulates_every_stage(tiny_field, tmp_path, capsys) -> 
     assert rows["field"] == rows["field, read by vote among the Gaussians' codebook entries"]  # the default
     assert all(0.0 <= r["mIoU"] <= 1.0 for r in rows.values())
     assert "| field |" in capsys.readouterr().out
+
+
+def test_capture_against_poses_reports_the_errors_of_a_posed_scene(room_factory, tmp_path, capsys) -> None:
+    """The built-in room's 8 views captured without their poses (3 on an arc, 5 off it)."""
+    out = tmp_path / "errors.json"
+    room = room_factory(320, 240)
+    argv = [str(room), "--out", str(tmp_path / "captured"), "--json", str(out)]
+    assert _module("capture_against_poses").main(argv) == 0
+    result = json.loads(out.read_text())
+    assert result["posed"] == result["frames"] == 8
+    assert result["rotation_deg"]["max"] < 3.0 and result["centre_share"]["max"] < 0.05
+    assert "8 of 8 frames posed" in capsys.readouterr().out
+    assert load_scene(tmp_path / "captured").names("train") == result["train_views"]

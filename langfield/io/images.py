@@ -4,6 +4,7 @@ undistortion to the working camera.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -88,12 +89,49 @@ def resize(array: np.ndarray, cam: Camera, interpolation: int) -> np.ndarray:
     return cv2.resize(array, (cam.width, cam.height), interpolation=interpolation)
 
 
+def _matrix(cam: Camera) -> np.ndarray:
+    return np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+
+
+def undistorted_camera(cam: Camera, distortion: Distortion) -> Camera:
+    """The pinhole camera of ``cam``'s undistorted image, cut to the pixels the photo covers.
+
+    As nerfstudio's loaders undistort (``cv2.getOptimalNewCameraMatrix`` with alpha 0, then a crop to
+    its valid region): keeping the photo's camera matrix instead leaves blank pixels along the edges,
+    which training fits as dark Gaussians and evaluation scores. On LLFF fern posed by ``langfield
+    capture`` (k1 0.057, 0.8 % of the pixels blank) that cost 2.9 dB of novel-view PSNR against the
+    same poses with the distortion ignored.
+    """
+    new, (x, y, width, height) = cv2.getOptimalNewCameraMatrix(
+        _matrix(cam), np.asarray(distortion, np.float64), (cam.width, cam.height), 0
+    )
+    if width < 1 or height < 1:  # a distortion no crop can undo: keep the camera matrix
+        return cam
+    return replace(
+        cam,
+        width=int(width),
+        height=int(height),
+        fx=float(new[0, 0]),
+        fy=float(new[1, 1]),
+        cx=float(new[0, 2] - x),
+        cy=float(new[1, 2] - y),
+    )
+
+
 def undistort(
-    array: np.ndarray, cam: Camera, distortion: Distortion, interpolation: int, border: int
+    array: np.ndarray,
+    cam: Camera,
+    distortion: Distortion,
+    interpolation: int,
+    border: int,
+    target: Camera | None = None,
 ) -> np.ndarray:
-    """What cv2.undistort does (same camera matrix before and after), with a choice of resampling."""
-    k = np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
-    size = (cam.width, cam.height)
-    map_x, map_y = cv2.initUndistortRectifyMap(k, np.asarray(distortion), None, k, size, cv2.CV_32FC1)
+    """The map of native camera ``cam`` undistorted into the pinhole camera ``target`` (default ``cam``
+    itself, as cv2.undistort), with a choice of resampling."""
+    target = cam if target is None else target
+    size = (target.width, target.height)
+    map_x, map_y = cv2.initUndistortRectifyMap(
+        _matrix(cam), np.asarray(distortion), None, _matrix(target), size, cv2.CV_32FC1
+    )
     warp = cv2.INTER_NEAREST if interpolation == cv2.INTER_NEAREST else cv2.INTER_LINEAR
     return cv2.remap(array, map_x, map_y, warp, borderMode=border)

@@ -40,7 +40,16 @@ from langfield.constants import (
 from langfield.io import colmap as colmap
 from langfield.io.bounds import clipped_near_far, near_far_box, shared_frustum_box
 from langfield.io.colmap import read_colmap
-from langfield.io.images import check_map_shape, has_alpha, load_npy, read_mask, read_rgba, resize, undistort
+from langfield.io.images import (
+    check_map_shape,
+    has_alpha,
+    load_npy,
+    read_mask,
+    read_rgba,
+    resize,
+    undistort,
+    undistorted_camera,
+)
 from langfield.io.layout import SPLITS, Layout, SceneError, listing
 from langfield.io.llff import read_llff
 from langfield.io.nerf import read_blender, read_transforms
@@ -101,9 +110,14 @@ class Scene:
         self.background = None if layout.background is None else layout.background.copy()
         bounds = layout.view_bounds
         self.near_far = None if bounds is None else (float(bounds[:, 0].min()), float(bounds[:, 1].max()))
+        # A distorted photo's view is its undistorted pinhole camera, cut to the pixels the photo covers.
+        self._pinhole = [
+            f.camera if f.distortion is None else undistorted_camera(f.camera, f.distortion)
+            for f in layout.frames
+        ]
         self.views = [
-            View(f.name, f.camera.scaled(self.resolution), f.image_path, split)
-            for f, split in zip(layout.frames, splits, strict=True)
+            View(f.name, pinhole.scaled(self.resolution), f.image_path, split)
+            for f, pinhole, split in zip(layout.frames, self._pinhole, splits, strict=True)
         ]
         self._index = {view.name: i for i, view in enumerate(self.views)}
         embeddings = self.root / TEXT_TABLE_FILE
@@ -287,7 +301,9 @@ class Scene:
             return None
         alpha = image[..., 3]
         if frame.distortion is not None:
-            alpha = undistort(alpha, frame.camera, frame.distortion, cv2.INTER_LINEAR, cv2.BORDER_CONSTANT)
+            alpha = undistort(
+                alpha, frame.camera, frame.distortion, cv2.INTER_LINEAR, cv2.BORDER_CONSTANT, self._pinhole[i]
+            )
         return np.ascontiguousarray(resize(alpha, self.views[i].camera, cv2.INTER_AREA), dtype=np.float32)
 
     def _read_image(self, i: int) -> np.ndarray:
@@ -301,7 +317,9 @@ class Scene:
                 f"{self._layout.source} says {cam.width}x{cam.height}"
             )
         if frame.distortion is not None:
-            image = undistort(image, cam, frame.distortion, cv2.INTER_LINEAR, cv2.BORDER_CONSTANT)
+            image = undistort(
+                image, cam, frame.distortion, cv2.INTER_LINEAR, cv2.BORDER_CONSTANT, self._pinhole[i]
+            )
         if image.shape[2] == 4:  # undistorted first so that pixels from outside the frame turn white
             alpha = image[..., 3:]
             image = image[..., :3] * alpha + _WHITE * (1.0 - alpha)
@@ -312,7 +330,7 @@ class Scene:
         frame = self._layout.frames[i]
         if frame.distortion is not None:
             native = resize(array, frame.camera, interpolation)
-            array = undistort(native, frame.camera, frame.distortion, interpolation, border)
+            array = undistort(native, frame.camera, frame.distortion, interpolation, border, self._pinhole[i])
         return resize(array, self.views[i].camera, interpolation)
 
 

@@ -187,15 +187,22 @@ def test_rgba_is_composited_on_white(tmp_path: Path) -> None:
     np.testing.assert_array_equal(scene.background, [1.0, 1.0, 1.0])
 
 
-def test_opencv_model_undistorts_image(tmp_path: Path) -> None:
+def test_opencv_model_undistorts_image_to_the_pixels_it_covers(tmp_path: Path) -> None:
     meta = _transforms(tmp_path)
     meta.update(camera_model="OPENCV", k1=0.2, k2=0.0, p1=0.01, p2=0.0)
-    pixels = np.tile(np.linspace(0, 255, W, dtype=np.uint8)[None, :, None], (H, 1, 3))
+    pixels = np.tile(np.linspace(60, 255, W, dtype=np.uint8)[None, :, None], (H, 1, 3))
     _write_image(tmp_path / "images" / "000.png", pixels)
-    image = load_scene(_save(tmp_path, meta)).image(0)
+    scene = load_scene(_save(tmp_path, meta))
+    image, cam = scene.image(0), scene.camera(0)
+    # nerfstudio's undistortion: the optimal new camera matrix (alpha 0), cut to its valid region.
     k = np.array([[meta["fl_x"], 0, W / 2], [0, meta["fl_y"], H / 2], [0, 0, 1]])
-    expected = cv2.undistort(pixels.astype(np.float32) / 255, k, np.array([0.2, 0.0, 0.01, 0.0]))
+    dist = np.array([0.2, 0.0, 0.01, 0.0])
+    new, (x, y, w, h) = cv2.getOptimalNewCameraMatrix(k, dist, (W, H), 0)
+    expected = cv2.undistort(pixels.astype(np.float32) / 255, k, dist, None, new)[y : y + h, x : x + w]
+    assert image.shape == (h, w, 3) and (cam.width, cam.height) == (w, h)
+    assert (cam.fx, cam.cx, cam.cy) == pytest.approx((new[0, 0], new[0, 2] - x, new[1, 2] - y))
     np.testing.assert_allclose(image, expected, atol=0.02)
+    assert image.min() > 0.2  # no blank pixel from outside the photo
 
 
 def test_duplicate_file_names_get_folder_names(tmp_path: Path) -> None:
@@ -484,19 +491,33 @@ def test_colmap_round_trip(tmp_path: Path, kind: str) -> None:
 
 
 @pytest.mark.parametrize(
-    ("model", "params", "intrinsics"),
+    ("model", "params", "intrinsics", "distortion"),
     [
-        ("SIMPLE_PINHOLE", [5.0, 4.0, 3.0], (5.0, 5.0, 4.0, 3.0)),
-        ("SIMPLE_RADIAL", [5.0, 4.0, 3.0, 0.1], (5.0, 5.0, 4.0, 3.0)),
-        ("RADIAL", [5.0, 4.0, 3.0, 0.1, 0.01], (5.0, 5.0, 4.0, 3.0)),
-        ("OPENCV", [5.0, 6.0, 4.0, 3.0, 0.1, 0.01, 0.001, 0.0], (5.0, 6.0, 4.0, 3.0)),
+        ("SIMPLE_PINHOLE", [5.0, 4.0, 3.0], (5.0, 5.0, 4.0, 3.0), None),
+        ("SIMPLE_RADIAL", [5.0, 4.0, 3.0, 0.1], (5.0, 5.0, 4.0, 3.0), (0.1, 0.0, 0.0, 0.0)),
+        ("RADIAL", [5.0, 4.0, 3.0, 0.1, 0.01], (5.0, 5.0, 4.0, 3.0), (0.1, 0.01, 0.0, 0.0)),
+        (
+            "OPENCV",
+            [5.0, 6.0, 4.0, 3.0, 0.1, 0.01, 0.001, 0.0],
+            (5.0, 6.0, 4.0, 3.0),
+            (0.1, 0.01, 0.001, 0.0),
+        ),
     ],
 )
-def test_colmap_camera_models(tmp_path: Path, model: str, params: list[float], intrinsics: tuple) -> None:
+def test_colmap_camera_models(
+    tmp_path: Path, model: str, params: list[float], intrinsics: tuple, distortion
+) -> None:
+    from langfield.io.images import undistorted_camera
+
     scene = load_scene(_colmap_scene(tmp_path, "bin", _ring(3), model=model, params=params))
     cam = scene.camera(0)
-    assert (cam.fx, cam.fy, cam.cx, cam.cy) == intrinsics
-    assert scene.image(0).shape == (H, W, 3)
+    native = Camera(cam.name, W, H, *intrinsics, cam.c2w)
+    # A distorted camera's view is its undistorted pinhole camera (the photo's covered pixels).
+    expected = native if distortion is None else undistorted_camera(native, distortion)
+    assert (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy) == pytest.approx(
+        (expected.width, expected.height, expected.fx, expected.fy, expected.cx, expected.cy)
+    )
+    assert scene.image(0).shape == (expected.height, expected.width, 3)
 
 
 # ---------------------------------------------------------------------------------------------------
