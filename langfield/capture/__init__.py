@@ -29,6 +29,7 @@ import numpy as np
 from langfield.atomic import check_writable_folder
 from langfield.capture.frames import (
     CaptureInputError,
+    FrameChoice,
     InputSummary,
     focal_pixels,
     inspect_input,
@@ -175,21 +176,7 @@ def _run(
     frames_dir = staging / "frames"
     frames_dir.mkdir(parents=True)
     t0 = time.perf_counter()
-    if summary.kind == "photos":
-        advance = progress("photos", len(summary.names))
-        names = store_photos(summary, frames_dir, options.max_size, lambda: advance(1))
-        choice = None
-    else:
-        advance = progress("video frames", 2 * max(summary.frames, 1))
-        choice = video_frames(
-            summary.paths[0], frames_dir, options.frames, options.max_size, tick=lambda: advance(1)
-        )
-        names = [r["name"] for r in choice.kept]
-        if len(names) < MIN_FRAMES:
-            raise CaptureError(
-                f"{summary.paths[0]}: only {len(names)} sharp, distinct frame(s) of {choice.decoded}; "
-                "a capture needs 3 (film more slowly, or a longer video)"
-            )
+    names, choice = _frames(summary, frames_dir, options, progress)
     seconds["frames"] = time.perf_counter() - t0
     files = [f"{n}.png" for n in names]
     stems = dict(zip(files, names, strict=True))
@@ -249,6 +236,26 @@ def _run(
     report["seconds"] = {k: round(v, 2) for k, v in seconds.items()}
     (staging / "scene" / REPORT_FILE).write_text(json.dumps(report, indent=2))
     return report
+
+
+def _frames(
+    summary: InputSummary, frames_dir: Path, options: CaptureOptions, progress: Progress
+) -> tuple[list[str], FrameChoice | None]:
+    """The frames written to ``frames_dir``: every photo, or the video's frames kept (and its choice)."""
+    if summary.kind == "photos":
+        advance = progress("photos", len(summary.names))
+        return store_photos(summary, frames_dir, options.max_size, lambda: advance(1)), None
+    advance = progress("video frames", 2 * max(summary.frames, 1))
+    choice = video_frames(
+        summary.paths[0], frames_dir, options.frames, options.max_size, tick=lambda: advance(1)
+    )
+    names = [r["name"] for r in choice.kept]
+    if len(names) < MIN_FRAMES:
+        raise CaptureError(
+            f"{summary.paths[0]}: only {len(names)} sharp, distinct frame(s) of {choice.decoded}; "
+            "a capture needs 3 (film more slowly, or a longer video)"
+        )
+    return names, choice
 
 
 def _focal_priors(summary: InputSummary, max_size: int) -> dict[str, float]:

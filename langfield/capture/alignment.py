@@ -15,8 +15,8 @@ Example:
     >>> c2w = np.stack([np.eye(4)] * 3); c2w[:, :3, 3] = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
     >>> moved = c2w.copy(); moved[:, :3, 3] = 2 * moved[:, :3, 3] + 5
     >>> errors = pose_errors(moved, c2w)
-    >>> round(errors["rotation_deg"].max(), 6), round(errors["centre"].max(), 6)
-    (0.0, 0.0)
+    >>> print(f'{errors["rotation_deg"].max():.6f} {errors["centre"].max():.6f}')
+    0.000000 0.000000
 """
 
 from __future__ import annotations

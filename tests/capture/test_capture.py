@@ -251,3 +251,13 @@ def test_three_photos_with_an_exif_focal_length_are_posed(tmp_path) -> None:
         np.array([scene.camera(n).c2w for n in scene.names("all")]), np.array([c.c2w for c in cams])
     )
     assert errors["rotation_deg"].max() < 2.5
+
+
+def test_a_video_of_a_resting_camera_is_one_line_and_nothing_written(tmp_path, capsys) -> None:
+    frame = render_room(arc_cameras(1, width=96, height=72))[0]
+    video = tmp_path / "still.avi"
+    write_video(video, iter([frame] * 6), FPS)  # every frame a near-duplicate of the first
+    assert main(["capture", str(video), "--out", str(tmp_path / "scene")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "only 1 sharp, distinct frame(s) of 6" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["still.avi"]
