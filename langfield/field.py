@@ -423,7 +423,7 @@ class LanguageField(nn.Module):
         depth_hard = None
         if hard_depth:
             # Eq. 7: every opacity replaced by mu, scales and rotations detached, so the hard depth's
-            # gradient moves only the means. One pass with the main render on the cpu backend.
+            # gradient moves only the means. One pass with the main render on the numba backend.
             mu = torch.full_like(opac, HARD_DEPTH_OPACITY) * (1.0 if keep is None else keep)
             out, hard = rasterize_with_second_pass(*gaussians, mu, dist, **options)
             depth_hard = hard[..., 0]

@@ -19,6 +19,7 @@ import sys
 
 __all__ = [
     "BACKENDS",
+    "BACKEND_ALIASES",
     "KERNEL_MODULES",
     "configure_numba_threads",
     "notice_once",
@@ -27,14 +28,28 @@ __all__ = [
 ]
 
 # The backends, for the rasterizer (langfield.raster.kernels) and the hash grid alike: "torch" the
-# PyTorch references, "cpu" the numba kernels; "auto" chooses "cpu".
-BACKENDS: tuple[str, ...] = ("torch", "cpu")
+# PyTorch references, "numba" the numba kernels; "auto" chooses "numba". Both run on the CPU, so the
+# numba backend is named for what it is; "cpu", its earlier name, is still accepted (and fields saved
+# with it still load).
+BACKENDS: tuple[str, ...] = ("torch", "numba")
+BACKEND_ALIASES: dict[str, str] = {"cpu": "numba"}
+_aliases_noticed: set[str] = set()
 
 
 def resolve_backend(backend: str) -> str:
-    """The concrete backend name for ``backend`` ("auto" -> "cpu")."""
+    """The concrete backend name for ``backend`` ("auto" -> "numba"; the alias "cpu" -> "numba", said
+    once per process on stderr)."""
     if backend == "auto":
-        return "cpu"
+        return "numba"
+    if backend in BACKEND_ALIASES:
+        if backend not in _aliases_noticed:
+            _aliases_noticed.add(backend)
+            print(
+                f"langfield: backend {backend!r} is now called {BACKEND_ALIASES[backend]!r}",
+                file=sys.stderr,
+                flush=True,
+            )
+        return BACKEND_ALIASES[backend]
     if backend not in BACKENDS:
         raise ValueError(f"unknown rasterizer backend {backend!r}; choose from auto, {', '.join(BACKENDS)}")
     return backend

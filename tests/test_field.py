@@ -281,7 +281,7 @@ def test_render_shapes_and_ranges(field, scene) -> None:
     assert r.means2d.shape == (N, 2) and r.radii.shape[0] == N
 
 
-@pytest.mark.parametrize("backend", ["torch", "cpu"])
+@pytest.mark.parametrize("backend", ["torch", "numba"])
 def test_hard_depth_gradient_moves_only_the_means(field, scene, backend) -> None:
     cam = scene.camera(scene.names("train")[0])
     field.zero_grad(set_to_none=True)
@@ -321,7 +321,7 @@ def _spread_reference(field: LanguageField, cam: Camera, backend: str) -> torch.
     return moments
 
 
-@pytest.mark.parametrize("backend", ["torch", "cpu"])
+@pytest.mark.parametrize("backend", ["torch", "numba"])
 def test_depth_spread_is_the_pairwise_spread_of_the_blending_weights(field, scene, backend) -> None:
     cam = scene.camera(scene.names("train")[0])
     grads = []

@@ -35,7 +35,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--iterations", type=int, default=None, help="iterations per case (default: sized by the scene)"
     )
     p.add_argument("--seed", type=int, default=0, help="seed of every case (default 0)")
-    p.add_argument("--backend", choices=["auto", "torch", "cpu"], default="auto", help="rasterizer backend")
+    p.add_argument(
+        "--backend",
+        choices=["auto", "torch", "numba", "cpu"],
+        default="auto",
+        help="rasterizer backend (cpu: numba's earlier name)",
+    )
     p.add_argument(
         "--lambda-opacity",
         type=float,

@@ -37,7 +37,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     print(format_table(result))
     b = result["backends"]
     print(
-        f"cpu backend {b['torch']['step_ms'] / b['cpu']['step_ms']:.1f}x faster than torch per step; "
+        f"numba backend {b['torch']['step_ms'] / b['numba']['step_ms']:.1f}x faster than torch per step; "
         f"results in {json_path}" + (f" and {plot}" if result["curve"] else "")
     )
     return 0

@@ -94,7 +94,12 @@ TRAIN_FLAGS = (
         help="training iterations (default: sized by the scene, 500 per training view in [1000, 6000])",
     ),
     _flag("--seed", type=int, default=0, help="seed of the start and the view order (default 0)"),
-    _flag("--backend", choices=["auto", "torch", "cpu"], default="auto", help="rasterizer backend"),
+    _flag(
+        "--backend",
+        choices=["auto", "torch", "numba", "cpu"],
+        default="auto",
+        help="rasterizer backend (cpu: numba's earlier name)",
+    ),
     _flag("--num-gaussians", type=int, default=None, help="initial Gaussians (default: sized to the scene)"),
     _flag(
         "--init",

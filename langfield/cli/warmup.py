@@ -30,7 +30,7 @@ def warm_up() -> float:
     color = ColorField(HashGridConfig(n_levels=2, log2_table_size=8), torch.zeros(3), 1.0)
     features = color(means, torch.nn.functional.normalize(means, dim=-1))
     camera = Camera.look_at(eye=(0, -2, 0.5), target=(0, 0, 0), width=32, height=24)
-    out = rasterize(means, quats, scales, opacities, features, camera, backend="cpu")
+    out = rasterize(means, quats, scales, opacities, features, camera, backend="numba")
     (out.image.sum() + out.alpha.sum()).backward()
     return time.perf_counter() - t0
 

@@ -42,7 +42,7 @@ def backend_step_ms(
     nearest-neighbour distances, opacity 0.1 raised to a spread of values), with ``channels`` random
     feature channels (13 = RGB + 3 x 3 language latents + depth).
     """
-    repeats = repeats or {"torch": 3, "cpu": 10}
+    repeats = repeats or {"torch": 3, "numba": 10}
     splats = G.init_gaussians(bounds, num_gaussians, seed=seed)
     g = torch.Generator().manual_seed(seed)
     base = [
@@ -130,7 +130,7 @@ def raster_throughput(
     opacities: torch.Tensor,
     camera: Camera,
     channels: int = 13,
-    backend: str = "cpu",
+    backend: str = "numba",
     repeats: int = 3,
     seed: int = 0,
 ) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from langfield.kernels import BACKENDS
+from langfield.kernels import BACKEND_ALIASES, BACKENDS
 from langfield.model.hashgrid import HashGridConfig
 
 __all__ = ["LANGUAGE_DECODES", "FieldFileError", "FieldMeta", "check_field_meta", "check_tensors"]
@@ -44,8 +44,10 @@ class FieldMeta(dict):
 
     @property
     def backend(self) -> str:
-        """The rasterizer backend the field was trained with ("auto" when not recorded)."""
-        return self.get("backend", "auto")
+        """The rasterizer backend the field was trained with ("auto" when not recorded; a field saved
+        when the numba backend was called "cpu" reads "numba")."""
+        backend = self.get("backend", "auto")
+        return BACKEND_ALIASES.get(backend, backend)
 
     @property
     def background(self) -> list[float]:
@@ -229,7 +231,7 @@ def check_field_meta(meta: Any, path: Path, readable: tuple[int, ...]) -> dict[s
     c.whole(meta, "color_field.hidden", 1)
     c.whole(meta, "color_field.n_freqs", 0)
     c.numbers(meta, "background", 3, optional=True)
-    c.choice(meta, "backend", ("auto", *BACKENDS), optional=True)
+    c.choice(meta, "backend", ("auto", *BACKENDS, *BACKEND_ALIASES), optional=True)
     bounds = meta.get("bounds")
     if bounds is not None and not (
         isinstance(bounds, list) and len(bounds) == 2 and all(isinstance(b, list) for b in bounds)

@@ -178,7 +178,7 @@ class HashGrid(nn.Module):
             raise ValueError(
                 f"grid box needs a finite centre and a positive half extent, got {center}, {half}"
             )
-        # Which interpolation runs, named as the rasterizer's backends: "cpu" (and "auto", on CPU
+        # Which interpolation runs, named as the rasterizer's backends: "numba" (and "auto", on CPU
         # tensors) the numba kernels of :mod:`langfield.model.hashgrid_cpu`; "torch" the PyTorch
         # reference (``_InterpolateRows``) the tests compare them against.
         self.backend = "auto"
@@ -278,7 +278,7 @@ class HashGrid(nn.Module):
         f = self.cfg.features_per_level
         if groups < 1 or f % groups:
             raise ValueError(f"groups must divide features_per_level={f}, got {groups}")
-        if resolve_backend(self.backend) == "cpu" and self.table.device.type == "cpu":
+        if resolve_backend(self.backend) == "numba" and self.table.device.type == "cpu":
             notice_once()
             out = InterpolateRowsNumba.apply(
                 self.table.view(-1, f), rows, frac.to(self.table.dtype), self.cfg.table_size, groups

@@ -2,8 +2,8 @@
 
 :func:`rasterize` projects the Gaussians to screen-space ellipses, bins them into 16x16 tiles and
 composites them with the chosen backend: ``"torch"`` (PyTorch throughout, written to be read: the
-reference every test compares with) or ``"cpu"`` (numba kernels for all three stages, hand-written
-backward). ``"auto"`` picks ``"cpu"``.
+reference every test compares with) or ``"numba"`` (numba kernels for all three stages, hand-written
+backward; ``"cpu"`` is its earlier name). ``"auto"`` picks ``"numba"``.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from langfield.raster.binning import bin_gaussians
 from langfield.raster.composite import rasterize_torch
 from langfield.raster.projection import NEAR_PLANE, Projected, project_gaussians, quat_to_rotmat
 
-Backend = Literal["auto", "torch", "cpu"]
+Backend = Literal["auto", "torch", "numba", "cpu"]  # "cpu": the numba backend's earlier name
 
 
 class RasterOutput(NamedTuple):
@@ -58,7 +58,7 @@ class Kernels(NamedTuple):
 
 
 def kernels(backend: Backend) -> Kernels:
-    """The kernels of ``backend``: the one table of what each backend runs. The ``cpu`` kernels are
+    """The kernels of ``backend``: the one table of what each backend runs. The ``numba`` kernels are
     imported, and the notice of their one-time compilation shown, when first asked for."""
     if resolve_backend(backend) == "torch":
         return Kernels(project_gaussians, bin_gaussians, rasterize_torch, None)
@@ -133,7 +133,7 @@ def rasterize(
         features: [N, C] channels to composite (colour, language latents, distance, ...).
         camera: the view.
         background: [C] value behind the Gaussians; zeros if None.
-        backend: "auto", "torch" or "cpu".
+        backend: "auto", "torch" or "numba" ("cpu", its earlier name, still works).
         near: near plane; Gaussians closer than this (or behind the camera) are culled.
         geometry_channels: only the first this many channels pass gradient to the geometry (means,
             rotations, scales, opacities); the rest train only their own feature values, in the same
@@ -187,7 +187,7 @@ def rasterize_with_second_pass(
 
     Equal to two :func:`rasterize` calls, ``rasterize(means, quats.detach(), scales.detach(),
     second_opacities, second_values, camera)`` being the second (the ``torch`` backend makes exactly
-    those). The ``cpu`` backend composites both in one walk over the tiles: the footprints are equal, so
+    those). The ``numba`` backend composites both in one walk over the tiles: the footprints are equal, so
     each pixel's Gaussian weight is computed once for both (the hard depth then costs ~1/3 of its own
     pass), and each pass's gradients still go to its own inputs.
 

@@ -42,6 +42,7 @@ from langfield.io.field_meta import LANGUAGE_DECODES, LANGUAGE_FEATURES
 from langfield.io.layout import SceneError
 from langfield.io.ply import read_points
 from langfield.io.scene import Scene
+from langfield.kernels import BACKEND_ALIASES, BACKENDS
 from langfield.model import gaussians as G
 from langfield.model.colour import ColorField
 from langfield.model.hashgrid import HashGridConfig
@@ -316,8 +317,8 @@ class _ConfigCheck:
 def _check_start_and_model(c: _ConfigCheck, cfg: TrainConfig) -> None:
     c.whole("iterations", 0, optional=True)
     c.whole("seed", 0)
-    if cfg.backend not in ("auto", "torch", "cpu"):
-        c.fail("backend", "'auto', 'torch' or 'cpu'")
+    if cfg.backend not in ("auto", *BACKENDS, *BACKEND_ALIASES):
+        c.fail("backend", "'auto', 'torch' or 'numba'")
     if cfg.init not in ("auto", *INIT_METHODS):
         c.fail("init", " or ".join(repr(m) for m in ("auto", *INIT_METHODS)))
     if cfg.init_align not in INIT_ALIGNS:

@@ -238,7 +238,7 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     assert language["rgb_only_ms_per_iteration"] > 0 and language["ratio"] > 0
     overhead = result["lad_lop_overhead"]
     assert overhead["depth"] and overhead["plain_ms_per_iteration"] > 0 and overhead["ratio"] > 0
-    assert set(result["backends"]) == {"torch", "cpu"}
+    assert set(result["backends"]) == {"torch", "numba"}
     for name, b in result["backends"].items():
         assert b["step_ms"] > 0, name
         assert b["image_max_abs_err"] <= 1e-4, name
@@ -417,6 +417,7 @@ def test_train_flags_agree_with_train_config() -> None:
 
     from langfield.cli import build_parser
     from langfield.io.field_meta import LANGUAGE_FEATURES
+    from langfield.kernels import BACKEND_ALIASES
     from langfield.raster import BACKENDS
     from langfield.training.initialisation import INIT_ALIGNS, INIT_METHODS
     from langfield.training.trainer import CONFIG_FLAGS, LANGUAGE_DECODES, TrainConfig
@@ -426,7 +427,7 @@ def test_train_flags_agree_with_train_config() -> None:
     assert set(CONFIG_FLAGS.values()) <= set(options)
     hints = typing.get_type_hints(TrainConfig)
     expected = {
-        "backend": ("auto", *BACKENDS),
+        "backend": ("auto", *BACKENDS, *BACKEND_ALIASES),
         "init": INIT_METHODS,
         "language_decode": LANGUAGE_DECODES,
     }

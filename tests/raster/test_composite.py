@@ -33,7 +33,7 @@ def assert_finite(out, grads) -> None:
 
 def assert_backends_agree(params, camera, background=None) -> None:
     ref, ref_grads = render_and_grads("torch", params, camera, background)
-    fast, fast_grads = render_and_grads("cpu", params, camera, background)
+    fast, fast_grads = render_and_grads("numba", params, camera, background)
     assert_finite(ref, ref_grads)
     assert_finite(fast, fast_grads)
     assert (ref.image - fast.image).abs().max() <= 1e-4
@@ -74,7 +74,7 @@ def test_rendered_gaussian_lands_where_projected():
         torch.tensor([0.9]),
         torch.ones(1, 1),
         cam,
-        backend="cpu",
+        backend="numba",
     )
     peak = torch.nonzero(out.image[..., 0] == out.image[..., 0].max())[0]
     v, u = peak.tolist()
@@ -116,7 +116,7 @@ def test_gaussian_at_camera_centre(cam):
 
 def test_gaussian_behind_camera(cam):
     params = with_backdrop(one_gaussian((0.0, -4.0, 0.0), scale=0.5))
-    out, grads = render_and_grads("cpu", params, cam)
+    out, grads = render_and_grads("numba", params, cam)
     assert out.radii[0] == 0
     assert_backends_agree(params, cam)
 
@@ -156,7 +156,7 @@ def test_near_degenerate_2d_covariance(cam):
 
 def test_gaussian_covering_whole_image(cam):
     params = with_backdrop(one_gaussian((0.0, 0.0, 0.0), scale=50.0, opacity=0.5))
-    out, _ = render_and_grads("cpu", params, cam)
+    out, _ = render_and_grads("numba", params, cam)
     assert (out.alpha > 0.45).all()
     assert_backends_agree(params, cam)
 
@@ -174,7 +174,7 @@ def test_large_gaussians_centred_off_screen_at_the_clamp_limits(cam):
             centres.append((0.1, depth - 3.0, sign * lim_y * factor * depth))
     parts = [one_gaussian(c, scale=0.6, opacity=0.7, quat=(0.9, 0.3, -0.2, 0.1)) for c in centres]
     params = with_backdrop([torch.cat(p) for p in zip(*parts, strict=True)])
-    out, _ = render_and_grads("cpu", params, cam)
+    out, _ = render_and_grads("numba", params, cam)
     assert (out.radii[: len(centres)] > 0).all()
     assert_backends_agree(params, cam)
 
@@ -182,7 +182,7 @@ def test_large_gaussians_centred_off_screen_at_the_clamp_limits(cam):
 def test_empty_scene_all_culled(cam):
     params = random_gaussians(20, 3)
     params[0] = params[0] - torch.tensor([0.0, 10.0, 0.0])  # all behind the camera
-    for backend in ("torch", "cpu"):
+    for backend in ("torch", "numba"):
         out = rasterize(*params, cam, background=torch.tensor([0.2, 0.3, 0.4]), backend=backend)
         assert (out.radii == 0).all()
         assert torch.allclose(out.image, torch.tensor([0.2, 0.3, 0.4]).expand_as(out.image))
@@ -212,20 +212,20 @@ def test_tile_with_more_gaussians_than_typical_cap(cam):
 def test_backends_agree_with_geometry_detached_for_later_channels(small_camera):
     params = random_gaussians(200, 6, seed=8)
     results = {}
-    for backend in ("torch", "cpu"):
+    for backend in ("torch", "numba"):
         leaves = [p.detach().clone().requires_grad_(True) for p in params]
         out = rasterize(*leaves, small_camera, backend=backend, geometry_channels=2)
         g = torch.Generator().manual_seed(2)
         (out.image * torch.randn(out.image.shape, generator=g)).sum().backward()
         results[backend] = [p.grad for p in leaves]
-    for name, a, b in zip(NAMES, results["torch"], results["cpu"], strict=True):
+    for name, a, b in zip(NAMES, results["torch"], results["numba"], strict=True):
         assert ((a - b).norm() / a.norm()).item() <= 1e-3, name
 
 
 def test_detached_channels_pass_no_gradient_to_geometry(small_camera):
     # A loss on channels 2.. only (the language latents) must leave the Gaussians' geometry untouched.
     params = random_gaussians(200, 6, seed=9)
-    for backend in ("torch", "cpu"):
+    for backend in ("torch", "numba"):
         leaves = [p.detach().clone().requires_grad_(True) for p in params]
         out = rasterize(*leaves, small_camera, backend=backend, geometry_channels=2)
         out.image[..., 2:].square().sum().backward()
@@ -277,7 +277,7 @@ def _two_passes(backend: str, params, camera, second_opacities, seed: int = 2):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_second_pass_in_one_walk_equals_two_passes(small_camera, seed):
-    # The cpu backend composites both passes in one walk over the tiles; the torch backend makes two
+    # The numba backend composites both passes in one walk over the tiles; the torch backend makes two
     # separate rasterize calls (the reference). Some opacities above the second pass's 0.99, some
     # Gaussians dropped from it (opacity 0), as dropout leaves them.
     params = random_gaussians(150, 4, seed=seed, log_scale=-2.0)
@@ -285,7 +285,7 @@ def test_second_pass_in_one_walk_equals_two_passes(small_camera, seed):
     second = torch.full((150,), 0.99)
     second[10:40] = 0.0
     ref, ref_grads, ref_m2d = _two_passes("torch", params, small_camera, second)
-    fast, fast_grads, fast_m2d = _two_passes("cpu", params, small_camera, second)
+    fast, fast_grads, fast_m2d = _two_passes("numba", params, small_camera, second)
     for a, b in zip(ref, fast, strict=True):
         assert (a - b).abs().max() <= 1e-4
     # The main pass's screen-space gradient (densification's statistic) leaves the second pass out.
@@ -318,3 +318,19 @@ def test_second_pass_rejects_footprints_that_differ(small_camera):
             m, c, torch.ones(2), torch.ones(2, 1), m + 1, c, torch.ones(2), torch.ones(2, 1),
             torch.zeros(2, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), 16, 16, torch.zeros(1),
         )  # fmt: skip
+
+
+def test_cpu_is_the_numba_backends_earlier_name(capsys) -> None:
+    """``cpu`` still selects the numba kernels, said once; a field saved with it reads ``numba``."""
+    import langfield.kernels as kernels_module
+    from langfield.io.field_meta import FieldMeta
+    from langfield.raster import kernels, resolve_backend
+
+    kernels_module._aliases_noticed.clear()
+    assert resolve_backend("cpu") == resolve_backend("auto") == "numba"
+    assert kernels("cpu") == kernels("numba") != kernels("torch")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["langfield: backend 'cpu' is now called 'numba'"]
+    assert FieldMeta({"backend": "cpu"}).backend == "numba"
+    with pytest.raises(ValueError, match="choose from auto, torch, numba"):
+        resolve_backend("gpu")
