@@ -18,7 +18,7 @@ __all__ = ["main", "warm_up"]
 
 def warm_up() -> float:
     """Compiles (or loads) every kernel by rendering a few Gaussians forward and backward with the
-    ``cpu`` backend and a hash-grid colour field, as training does. Returns the seconds it took."""
+    ``numba`` backend and a hash-grid colour field, as training does. Returns the seconds it took."""
     t0 = time.perf_counter()
     notice_once()
     generator = torch.Generator().manual_seed(0)
