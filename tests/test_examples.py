@@ -6,6 +6,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from langfield import TrainConfig, load_scene, train
@@ -55,3 +56,20 @@ def test_capture_against_poses_reports_the_errors_of_a_posed_scene(room_factory,
     assert result["rotation_deg"]["max"] < 3.0 and result["centre_share"]["max"] < 0.05
     assert "8 of 8 frames posed" in capsys.readouterr().out
     assert load_scene(tmp_path / "captured").names("train") == result["train_views"]
+
+
+def test_capture_against_poses_adds_uncaptured_test_views(room_factory, tmp_path) -> None:
+    """Photos left out of the capture come back as test views, posed in the captured scene's frame."""
+    from langfield.capture.alignment import pose_errors
+
+    room = room_factory(320, 240)
+    out = tmp_path / "captured"
+    argv = [str(room), "--out", str(out), "--views", "train_000,train_001,train_002,test_000,test_001"]
+    assert _module("capture_against_poses").main([*argv, "--test-views", "test_002,test_003,test_004"]) == 0
+    captured, truth = load_scene(out), load_scene(room)
+    assert {"test_002", "test_003", "test_004"} <= set(captured.names("test"))
+    names = captured.names("all")
+    errors = pose_errors(
+        np.array([captured.camera(n).c2w for n in names]), np.array([truth.camera(n).c2w for n in names])
+    )
+    assert errors["rotation_deg"].max() < 3.0 and errors["centre"].max() < 0.05 * errors["size"]

@@ -84,8 +84,8 @@ def _no_bar(stage: str, total: int) -> Callable[[int], None]:
     return lambda n: None
 
 
-def check_options(options: CaptureOptions, summary: InputSummary | None = None) -> None:
-    """Refuses settings that cannot work, naming the flag (and, given the input, what it holds)."""
+def check_options(options: CaptureOptions) -> None:
+    """Refuses settings that cannot work whatever the input, naming the flag."""
     if options.frames < MIN_FRAMES:
         raise CaptureInputError(f"--frames must be at least {MIN_FRAMES}, got {options.frames}")
     if options.max_size < 64:
@@ -104,8 +104,10 @@ def check_options(options: CaptureOptions, summary: InputSummary | None = None) 
         twice = sorted({v for v in options.views if options.views.count(v) > 1})
         if twice:
             raise CaptureInputError(f"--views names {', '.join(twice)} more than once")
-    if summary is None:
-        return
+
+
+def _check_options_for(options: CaptureOptions, summary: InputSummary) -> None:
+    """Refuses settings that the input cannot meet: photo names, one camera for photos of several sizes."""
     if summary.kind == "photos" and options.views is not None:
         unknown = [v for v in options.views if v not in summary.names]
         if unknown:
@@ -149,7 +151,7 @@ def capture(
     source, out = Path(source), Path(out)
     check_options(options)
     summary = inspect_input(source)
-    check_options(options, summary)
+    _check_options_for(options, summary)
     _check_out(out, options.force, source)
     staging = out.parent / f".{out.name}.capture-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
@@ -201,7 +203,7 @@ def _run(
         progress=progress,
     )
     seconds["poses"] = time.perf_counter() - t0
-    _check_registered(result, files, stems)
+    _check_registered(result, len(files))
     t0 = time.perf_counter()
     report = {
         "input": {
@@ -275,13 +277,13 @@ def _model_report(model: PoseModel, stems: dict[str, str]) -> dict:
     }
 
 
-def _check_registered(result: PoseResult, files: list[str], stems: dict[str, str]) -> None:
+def _check_registered(result: PoseResult, frames: int) -> None:
     largest = len(result.models[0].names) if result.models else 0
     if largest >= MIN_FRAMES:
         return
     tried = "; ".join(f"{a['name']}: {a['registered']}" for a in result.attempts)
     raise CaptureError(
-        f"only {largest} of {len(files)} frames could be posed together (attempts {tried}); a scene needs "
+        f"only {largest} of {frames} frames could be posed together (attempts {tried}); a scene needs "
         f"{MIN_FRAMES}: give photos that overlap more (each part of the scene in 3 or more of them), "
         "sharper or more textured ones, or more of them"
     )

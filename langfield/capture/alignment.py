@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["pose_errors", "umeyama"]
+__all__ = ["align_poses", "pose_errors", "umeyama"]
 
 
 def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -55,6 +55,15 @@ def _frame_points(c2w: np.ndarray) -> np.ndarray:
     return np.concatenate([centres, tips.reshape(-1, 3)])
 
 
+def align_poses(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(scale, rotation [3, 3], translation [3]) taking the cameras ``source`` [N, 4, 4] onto the same
+    cameras ``target`` [N, 4, 4] (camera-to-world, one axes convention): Umeyama on their centres and
+    axis tips (the module docstring)."""
+    return umeyama(
+        _frame_points(np.asarray(source, np.float64)), _frame_points(np.asarray(target, np.float64))
+    )
+
+
 def pose_errors(estimated: np.ndarray, reference: np.ndarray) -> dict[str, np.ndarray | float]:
     """Per-camera errors of ``estimated`` against ``reference`` after the similarity alignment.
 
@@ -69,7 +78,7 @@ def pose_errors(estimated: np.ndarray, reference: np.ndarray) -> dict[str, np.nd
         scene's size)}.
     """
     estimated, reference = np.asarray(estimated, np.float64), np.asarray(reference, np.float64)
-    scale, rotation, translation = umeyama(_frame_points(estimated), _frame_points(reference))
+    scale, rotation, translation = align_poses(estimated, reference)
     centres = scale * estimated[:, :3, 3] @ rotation.T + translation
     aligned = np.einsum("ij,njk->nik", rotation, estimated[:, :3, :3])
     relative = np.einsum("nji,njk->nik", aligned, reference[:, :3, :3])

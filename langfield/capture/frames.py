@@ -283,7 +283,7 @@ def video_frames(
             choice.kept.append(record)
             last = i
     wanted = {r["index"]: r["name"] for r in choice.kept}
-    final = max(wanted)
+    final = max(wanted, default=-1)  # the sharpest candidate is never below the median: one is kept
 
     def save(index: int, seconds: float, frame: np.ndarray) -> bool:
         if index in wanted:

@@ -186,7 +186,7 @@ def solve_poses(
                 progress,
                 focal_priors,
             )
-            registered = len(result.models[0].names) if result.models else 0
+            registered = _score(result)[0]
             reports.append(
                 {
                     "name": attempt.name,
