@@ -36,7 +36,7 @@ from langfield import LanguageField, TrainConfig, load_scene
 from langfield.eval.evaluate import masked_pixels, score_queries, true_features
 from langfield.query import fill_empty, text_encoder_for
 from langfield.training.aggregate import aggregate_latents, with_latents
-from langfield.training.trainer import language_targets
+from langfield.training.targets import language_targets
 from querying.evaluation import mask_iou, summarize_queries
 from querying.relevancy import CANONICAL_PHRASES, relevancy, relevancy_mask
 

@@ -18,7 +18,8 @@ from langfield.camera import Camera
 from langfield.eval.evaluate import evaluate
 from langfield.field import LanguageField, Render
 from langfield.io.scene import Scene, SceneError, load_scene
-from langfield.training.trainer import TrainConfig, train
+from langfield.training.config import TrainConfig
+from langfield.training.loop import train
 
 __all__ = [
     "Camera",

@@ -81,6 +81,67 @@ class Camera:
         k = [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
         return torch.tensor(k, dtype=dtype)
 
+    def pose_cv(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R [3, 3], t [3]) world -> camera in the OpenCV convention, float64: the start works in
+        metres across rooms, where float32 poses lose the millimetres its depth checks compare."""
+        w2c = self.world_to_camera(dtype=torch.float64).numpy()
+        return w2c[:3, :3], w2c[:3, 3]
+
+    def pixel_rays(
+        self, rows: np.ndarray | None = None, cols: np.ndarray | None = None, dtype: torch.dtype | None = None
+    ) -> np.ndarray | torch.Tensor:
+        """Camera-frame directions (x, y, 1) through pixel centres (OpenCV frame; pixel (r, c) spans
+        [c, c + 1) x [r, r + 1), its centre at + 0.5): [H, W, 3] for every pixel, or [N, 3] for
+        ``rows``, ``cols``. NumPy float64, or a tensor of ``dtype`` when one is given."""
+        if dtype is not None:
+            v, u = torch.meshgrid(
+                torch.arange(self.height, dtype=dtype) + 0.5, torch.arange(self.width, dtype=dtype) + 0.5,
+                indexing="ij",
+            )  # fmt: skip
+            x, y = (u - self.cx) / self.fx, (v - self.cy) / self.fy
+            return torch.stack([x, y, torch.ones_like(x)], dim=-1)
+        if rows is None or cols is None:
+            rows, cols = np.mgrid[0 : self.height, 0 : self.width]
+        x, y = (cols + 0.5 - self.cx) / self.fx, (rows + 0.5 - self.cy) / self.fy
+        return np.stack([x, y, np.ones(np.shape(x))], axis=-1)
+
+    def unproject(
+        self, depth: np.ndarray | torch.Tensor, rows: np.ndarray | None = None, cols: np.ndarray | None = None
+    ) -> np.ndarray | torch.Tensor:
+        """World points at z-depth ``depth`` [H, W] (along the viewing axis) through pixel centres:
+        [H, W, 3] for every pixel, or [N, 3] for ``rows``, ``cols``. A tensor gives a tensor of its
+        dtype (differentiable in the depth); an array gives float64."""
+        if isinstance(depth, torch.Tensor):
+            rays = self.pixel_rays(dtype=depth.dtype)
+            local = torch.stack([rays[..., 0] * depth, rays[..., 1] * depth, depth], dim=-1)
+            w2c = self.world_to_camera(dtype=depth.dtype)
+            return (local - w2c[:3, 3]) @ w2c[:3, :3]  # R^T (p - t)
+        r, t = self.pose_cv()
+        z = depth if rows is None else depth[rows, cols]
+        rays = self.pixel_rays(rows, cols)
+        return (rays * z[..., None] - t) @ r
+
+    def project(
+        self, points: np.ndarray | torch.Tensor
+    ) -> tuple[np.ndarray, np.ndarray] | tuple[torch.Tensor, torch.Tensor]:
+        """(pixel coordinates [..., 2], z-depths [...]) of world points [..., 3]; pixel (r, c)'s centre
+        is at (c + 0.5, r + 0.5). Coordinates are meaningful where z > 0 only (at |z| < 1e-12 they are
+        taken at that depth, so that they stay finite). A tensor gives tensors of its dtype; an array
+        is projected in float64."""
+        if isinstance(points, torch.Tensor):
+            w2c = self.world_to_camera(dtype=points.dtype)
+            p = points @ w2c[:3, :3].T + w2c[:3, 3]
+            z = p[..., 2]
+            safe = torch.where(z.abs() < 1e-12, torch.full_like(z, 1e-12), z)
+            return torch.stack(
+                [self.fx * p[..., 0] / safe + self.cx, self.fy * p[..., 1] / safe + self.cy], -1
+            ), z
+        r, t = self.pose_cv()
+        p = points @ r.T + t
+        z = p[..., 2]
+        safe = np.where(np.abs(z) < 1e-12, 1e-12, z)
+        return np.stack([self.fx * p[..., 0] / safe + self.cx, self.fy * p[..., 1] / safe + self.cy], -1), z
+
     def scaled(self, factor: float) -> Camera:
         """The same camera at an image `factor` times smaller (factor 2 halves width and height)."""
         if factor <= 0:

@@ -15,7 +15,8 @@ import torch
 import langfield
 import langfield.cli.warmup
 import langfield.kernels
-import langfield.training.trainer
+import langfield.training.setup
+import langfield.training.targets
 from langfield import LanguageField, TrainConfig, load_scene
 from langfield.cli import build_parser, main
 from langfield.io.field_meta import FieldFileError
@@ -43,8 +44,8 @@ def no_work(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("work was started before the input was checked")
 
-    monkeypatch.setattr(langfield.training.trainer, "language_targets", refuse)
-    monkeypatch.setattr(langfield.training.trainer, "build_field", refuse)
+    monkeypatch.setattr(langfield.training.setup, "language_targets", refuse)
+    monkeypatch.setattr(langfield.training.setup, "build_field", refuse)
 
 
 def copy_scene(scene_dir: Path, dest: Path) -> Path:
@@ -216,7 +217,7 @@ def test_a_damaged_test_view_cache_exits_2_before_work(scene_dir, tmp_path, caps
 
 def test_check_inputs_reads_every_view_once_without_keeping_test_images(scene_dir) -> None:
     scene = load_scene(scene_dir)
-    langfield.training.trainer.check_inputs(scene, TrainConfig(), progress=False)
+    langfield.training.targets.check_inputs(scene, TrainConfig(), progress=False)
     assert set(scene._cache) <= set(scene.names("train"))
 
 

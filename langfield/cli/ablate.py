@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 
 from langfield.cli.common import add_scene_flags, scene_args
 
@@ -11,12 +10,10 @@ from langfield.cli.common import add_scene_flags, scene_args
 def cmd_ablate(args: argparse.Namespace) -> int:
     from langfield.eval.ablate import DEFAULT_CASES, format_table, run_ablation
     from langfield.io.scene import load_scene
-    from langfield.training.trainer import TrainConfig
+    from langfield.training.config import config_from_flags
 
     cases = tuple(c.strip() for c in args.cases.split(",")) if args.cases else DEFAULT_CASES
-    base = TrainConfig(iterations=args.iterations, seed=args.seed, backend=args.backend)
-    if args.lambda_opacity is not None:
-        base = replace(base, lambda_opacity=args.lambda_opacity)
+    base = config_from_flags(args)  # the settings every case starts from; the cases change one each
     scene = load_scene(args.scene, **scene_args(args))
     rows = run_ablation(scene, base, cases, out_dir=args.out, overwrite=args.force)
     print(format_table(rows))
@@ -27,26 +24,14 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Registers ``langfield ablate``."""
+    from langfield.training.config import add_train_flags
+
     p = sub.add_parser("ablate", help="train the paper's ablation cases on one scene and tabulate them")
     p.add_argument("scene", help="scene folder")
     p.add_argument("--out", default="ablate_out", help="folder for the fields and ablation.json/.md")
     p.add_argument("--force", action="store_true", help="replace the case fields already in OUT")
-    p.add_argument(
-        "--iterations", type=int, default=None, help="iterations per case (default: sized by the scene)"
-    )
-    p.add_argument("--seed", type=int, default=0, help="seed of every case (default 0)")
-    p.add_argument(
-        "--backend",
-        choices=["auto", "torch", "numba", "cpu"],
-        default="auto",
-        help="rasterizer backend (cpu: numba's earlier name)",
-    )
-    p.add_argument(
-        "--lambda-opacity",
-        type=float,
-        default=None,
-        help="opacity penalty weight of every case (default: TrainConfig's; the no-opacity-reg case sets 0)",
-    )
+    # TrainConfig's flags for every case; the no-opacity-reg case sets lambda_opacity 0 whatever is given.
+    add_train_flags(p, ("iterations", "seed", "backend", "lambda_opacity"))
     p.add_argument(
         "--cases",
         default=None,

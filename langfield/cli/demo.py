@@ -12,7 +12,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from langfield.eval.evaluate import evaluate, write_report
     from langfield.io.scene import load_scene
     from langfield.synthetic import make_room
-    from langfield.training.trainer import TrainConfig, summary_line, train, training_length
+    from langfield.training.config import TrainConfig
+    from langfield.training.loop import summary_line, train
+    from langfield.training.setup import training_length
 
     if args.layout < 0:
         raise ValueError(f"--layout: a whole number >= 0, got {args.layout}")

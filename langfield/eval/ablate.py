@@ -1,6 +1,6 @@
 """``langfield ablate SCENE``: the paper's Table 3 cases on one scene, same seed and budget, one table.
 
-Cases (each a :class:`~langfield.training.trainer.TrainConfig` change from the full method):
+Cases (each a :class:`~langfield.training.config.TrainConfig` change from the full method):
 
 - ``full``: hash-grid language features, LAD (eq. 6-11) and LOP (eq. 14-16);
 - ``no-lop``: without language-guided outlier pruning;
@@ -14,7 +14,7 @@ Cases (each a :class:`~langfield.training.trainer.TrainConfig` change from the f
   the sparse-view training, the reference the full method is measured against.
 
 The sparse-view switches (:mod:`langfield.training.regularisers`,
-:mod:`langfield.training.initialisation`), each one change from the defaults:
+:mod:`langfield.training.start`), each one change from the defaults:
 
 - ``random-init``, ``sfm-init``, ``depth-init``: another start than the default's (``init="auto"``:
   the depth prior where every training view has one, else the plane-sweep points);
@@ -48,7 +48,9 @@ from langfield.eval.evaluate import evaluate
 from langfield.eval.geometry import count_floaters, depth_agreement, depth_errors
 from langfield.field import check_output_folder
 from langfield.io.scene import Scene
-from langfield.training.trainer import TrainConfig, check_inputs, empty_space, train
+from langfield.training.config import TrainConfig
+from langfield.training.loop import train
+from langfield.training.targets import check_inputs, empty_space
 
 CASES: dict[str, dict[str, Any]] = {
     "full": {},

@@ -25,7 +25,9 @@ from langfield.eval.evaluate import evaluate
 from langfield.io.scene import Scene
 from langfield.model import gaussians as G
 from langfield.raster import BACKENDS, rasterize
-from langfield.training.trainer import TrainConfig, evaluate_psnr, train, training_length
+from langfield.training.config import TrainConfig
+from langfield.training.loop import evaluate_psnr, train
+from langfield.training.setup import training_length
 
 
 def backend_step_ms(

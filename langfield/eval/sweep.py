@@ -45,7 +45,7 @@ import numpy as np
 from langfield.atomic import atomic_path
 from langfield.cluster import ray_session
 from langfield.eval.ablate import CASES, run_case
-from langfield.training.trainer import TrainConfig, check_config
+from langfield.training.config import TrainConfig, check_config
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -118,7 +118,7 @@ def load_spec(path: str | Path, check_scenes: bool = True) -> Spec:
     """Reads and checks a spec (see the module's docstring); ``check_scenes`` also reads every file of
     every scene as training will."""
     from langfield.io.scene import load_scene
-    from langfield.training.trainer import check_inputs
+    from langfield.training.targets import check_inputs
 
     path = Path(path)
     if not path.is_file():

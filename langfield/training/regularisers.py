@@ -1,5 +1,5 @@
 """Regularisers for training from three views, each a switch of
-:class:`langfield.training.trainer.TrainConfig`.
+:class:`langfield.training.config.TrainConfig`.
 
 - Gaussian dropout (DropGaussian, Park et al., CVPR 2025): each iteration a random fraction
   r_t = gamma t / T of the Gaussians is left out of the render and the opacities of the rest are
@@ -113,12 +113,8 @@ def shifted_camera(cam: Camera, right: float, up: float = 0.0) -> Camera:
 
 def z_depth(distance: Tensor, cam: Camera) -> Tensor:
     """[H, W] z-depth (along the viewing axis) from the distance to the camera centre [H, W]."""
-    v, u = torch.meshgrid(
-        torch.arange(cam.height, dtype=distance.dtype) + 0.5,
-        torch.arange(cam.width, dtype=distance.dtype) + 0.5,
-        indexing="ij",
-    )
-    x, y = (u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy
+    rays = cam.pixel_rays(dtype=distance.dtype)
+    x, y = rays[..., 0], rays[..., 1]
     return distance / torch.sqrt(x * x + y * y + 1.0)
 
 
@@ -159,18 +155,6 @@ def virtual_view_warp(
     return warped[0].permute(1, 2, 0), positive & inside
 
 
-def backproject(depth_z: Tensor, cam: Camera) -> Tensor:
-    """[H, W, 3] world points of ``cam``'s pixel centres at their z-depth ``depth_z`` [H, W]."""
-    v, u = torch.meshgrid(
-        torch.arange(cam.height, dtype=depth_z.dtype) + 0.5,
-        torch.arange(cam.width, dtype=depth_z.dtype) + 0.5,
-        indexing="ij",
-    )
-    local = torch.stack([(u - cam.cx) / cam.fx * depth_z, (v - cam.cy) / cam.fy * depth_z, depth_z], dim=-1)
-    w2c = cam.world_to_camera(dtype=depth_z.dtype)
-    return (local - w2c[:3, 3]) @ w2c[:3, :3]  # R^T (p - t)
-
-
 def free_space_violation(
     points: Tensor, cam: Camera, depth_z: Tensor, covered: Tensor, tolerance: float
 ) -> tuple[Tensor, Tensor]:
@@ -191,13 +175,9 @@ def free_space_violation(
         ``(violation [M], valid [M] bool)``: relu(D (1 - tolerance) - z) / D, and where X projects
         into ``cam`` in front of it onto a covered pixel.
     """
-    w2c = cam.world_to_camera(dtype=points.dtype)
-    local = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = local[:, 2]
+    uv, z = cam.project(points)
     ahead = z > 1e-6
-    z_safe = torch.where(ahead, z, torch.ones_like(z))
-    u = cam.fx * local[:, 0] / z_safe + cam.cx
-    v = cam.fy * local[:, 1] / z_safe + cam.cy
+    u, v = uv[:, 0], uv[:, 1]
     inside = ahead & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
     col = u.detach().floor().long().clamp(0, cam.width - 1)
     row = v.detach().floor().long().clamp(0, cam.height - 1)

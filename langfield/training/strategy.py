@@ -1,331 +1,174 @@
-"""Adaptive density control of the Gaussians (3DGS, with DNGaussian's sparse-view settings), gsplat style.
+"""Every edit of the Gaussian set during training, in one object: :class:`TrainingStrategy`.
 
-:class:`DensifyStrategy` accumulates each Gaussian's screen-space position gradient and, every
-``refine_every`` steps, clones small Gaussians with a large gradient, splits large ones in two and prunes
-transparent or oversized ones. The operations :func:`duplicate`, :func:`split` and :func:`remove` edit
-every ``[N, ...]`` entry of the parameter dict alike (including ones added later, e.g. ``"lang"``) and keep
-the optimizers in step: the new ``nn.Parameter`` replaces the old one in the dict and in the optimizer's
-param group, Adam's moments follow the surviving rows and start at zero for new ones.
+gsplat's habit: the strategy owns each change to the set of Gaussians together with the optimizer state
+that follows it, and the loop calls it at fixed points of an iteration:
 
-Optimizer layout: ``optimizers`` maps names to optimizers, one Adam per Gaussian parameter as in gsplat.
-The helpers find each parameter by identity in every param group of every optimizer given, so a single
-Adam with one group per key (passed under any name) and optimizers for other modules work too.
+- :meth:`~TrainingStrategy.before_render`: space carving with the start's stereo (optional);
+- :meth:`~TrainingStrategy.after_backward`: densification's clone / split / prune
+  (:class:`~langfield.training.densify.DensifyStrategy`), which reads this step's gradients;
+- :meth:`~TrainingStrategy.after_optimizer_step`: Binocular-guided 3DGS's opacity decay and, every
+  ``lop_every`` iterations, a round of language-guided outlier pruning (:mod:`langfield.training.lop`).
+
+:meth:`~TrainingStrategy.record` is what field.json keeps of the edits.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from langfield.model.gaussians import normalize_quats
-from langfield.raster.projection import quat_to_rotmat
+from langfield.camera import Camera
+from langfield.field import LanguageField, Render
+from langfield.training.config import TrainConfig
+from langfield.training.densify import DensifyStrategy, remove
+from langfield.training.lop import lop_prune
+from langfield.training.regularisers import free_space_violation
+from langfield.training.start import StartPoints
+from langfield.training.targets import LanguageTargets
 
-Optimizers = dict[str, torch.optim.Optimizer]
-# (name, old tensor) -> new tensor, applied to parameters, optimizer moments and strategy state.
-_EditFn = Callable[[str, Tensor], Tensor]
+Surface = tuple[Camera, Tensor, Tensor]  # camera, z-depth [H, W], resolved [H, W] bool
 
 
-@dataclass
-class DensifyStrategy:
-    """Clone / split / prune schedule (3DGS's adaptive density control, DNGaussian's sparse-view values).
+class TrainingStrategy:
+    """The edits of one run's Gaussian set; ``optimizers`` follow every edit (Adam's moments kept in step).
 
-    Defaults are DNGaussian's LLFF 3-view script (``scripts/run_llff.sh``, ``scene/gaussian_model.py``):
-    refine every 100 steps after step 500 until the end of the 6000-step run, gradient threshold 0.0013
-    (3DGS: 0.0002; DNGaussian's DTU script: 0.001), percent_dense 0.01, prune opacity below 0.01, densify
-    only Gaussians more opaque than 0.1 (``split_opacity_thresh``), split into 2 with scales / 1.6, and
-    no opacity reset.
-
-    Attributes:
-        refine_start: first refinement after this step (refines at steps > refine_start).
-        refine_every: refinement interval in steps.
-        refine_stop: no statistics and no refinement from this step on.
-        grad_threshold: mean screen-space gradient norm (in NDC units, as 3DGS) above which a Gaussian grows.
-        prune_opacity: Gaussians less opaque than this are removed.
-        percent_dense: a Gaussian whose largest scale is <= percent_dense x scene extent is cloned,
-            a larger one is split.
-        grow_opacity_min: only Gaussians more opaque than this are cloned or split (DNGaussian).
-        prune_scale3d: Gaussians whose largest scale exceeds this x scene extent are removed
-            (3DGS / gsplat: 0.1); None keeps them, as DNGaussian does.
-        split_scale_factor: children of a split get the parent's scales divided by this (3DGS: 0.8 x 2).
-        max_gaussians: cap on the count; when growth would pass it, the Gaussians with the largest
-            gradients grow first. A CPU budget, not from a paper.
-        seed: seed of the samples that place split children.
+    Args:
+        cfg: the run's settings (``iterations`` resolved).
+        field: the field whose ``splats`` are edited.
+        optimizers: one per Gaussian parameter (:func:`~langfield.training.setup.make_optimizers`).
+        targets: the language targets (LOP's prototypes); None without language, which turns LOP off.
+        stereo: the start's stereo surfaces, for carving (:func:`stereo_surfaces`); empty: no carving.
     """
 
-    refine_start: int = 500
-    refine_every: int = 100
-    refine_stop: int = 6000
-    grad_threshold: float = 0.0013
-    prune_opacity: float = 0.01
-    percent_dense: float = 0.01
-    grow_opacity_min: float = 0.1
-    prune_scale3d: float | None = 0.1
-    split_scale_factor: float = 1.6
-    max_gaussians: int = 60_000
-    seed: int = 0
-
-    def initialize_state(self, params: nn.ParameterDict) -> dict[str, Any]:
-        """Fresh running statistics for ``params``.
-
-        Returns:
-            {"grad2d": [N] summed gradient norms, "count": [N] times visible, "generator": torch.Generator
-            for the split samples}.
-        """
-        n = params["means"].shape[0]
-        device = params["means"].device
-        return {
-            "grad2d": torch.zeros(n, device=device),
-            "count": torch.zeros(n, device=device),
-            "generator": torch.Generator(device=device).manual_seed(self.seed),
-        }
-
-    def step_pre_backward(
-        self, params: nn.ParameterDict, optimizers: Optimizers, state: dict[str, Any], step: int, info: dict
-    ) -> None:
-        """Ask autograd to keep ``info["means2d"].grad`` (needed when means2d is not a leaf)."""
-        means2d = info.get("means2d")
-        if means2d is not None and means2d.requires_grad and step < self.refine_stop:
-            means2d.retain_grad()
-
-    def step_post_backward(
+    def __init__(
         self,
-        params: nn.ParameterDict,
-        optimizers: Optimizers,
-        state: dict[str, Any],
-        step: int,
-        info: dict,
-        scene_extent: float,
-    ) -> dict[str, int]:
-        """Accumulate gradient statistics and, on refinement steps, clone, split and prune.
+        cfg: TrainConfig,
+        field: LanguageField,
+        optimizers: dict[str, torch.optim.Optimizer],
+        targets: LanguageTargets | None,
+        stereo: list[Surface],
+    ) -> None:
+        self.cfg, self.field, self.optimizers, self.targets, self.stereo = (
+            cfg,
+            field,
+            optimizers,
+            targets,
+            stereo,
+        )
+        self.densify = DensifyStrategy(
+            refine_start=cfg.refine_start,
+            refine_every=cfg.refine_every,
+            refine_stop=cfg.refine_stop if cfg.refine_stop is not None else cfg.iterations,  # DNGaussian
+            grad_threshold=cfg.grad_threshold,
+            prune_opacity=cfg.prune_opacity,
+            max_gaussians=cfg.max_gaussians or 4 * field.num_gaussians,
+            # DNGaussian keeps large Gaussians; 3DGS prunes them only after opacity resets.
+            prune_scale3d=None,
+        )
+        self.state = self.densify.initialize_state(field.splats)
+        self.extent = _extent(field)
+        self.use_lop = cfg.lop and targets is not None and cfg.lop_every > 0
+        self.carved: list[dict[str, int]] = []
+        self.lop_rounds: list[dict[str, Any]] = []
 
-        Call after ``loss.backward()`` and before ``optimizer.step()``.
+    def before_render(self, step: int) -> None:
+        """Space carving every ``refine_every`` iterations, when the run carves."""
+        if self.stereo and step % self.cfg.refine_every == 0:
+            self.carved.append(self._carve(step))
 
-        Args:
-            params: the Gaussians; edited in place on refinement steps.
-            optimizers: optimizers holding the parameters (see the module docstring).
-            state: from :meth:`initialize_state`; edited in place.
-            step: current step, from 0.
-            info: "means2d" [N, 2] or [C, N, 2] projected centres in pixels whose ``.grad`` is filled (a
-                missing tensor or grad counts as not visible), "radii" [N] or [C, N] pixel radii (0 =
-                culled; a trailing per-axis dim [..., 2] is accepted), "width", "height" in pixels.
-            scene_extent: scene radius in world units.
-
-        Returns:
-            {"cloned", "split", "pruned"} numbers of Gaussians (zeros on other steps).
-        """
-        counts = {"cloned": 0, "split": 0, "pruned": 0}
-        if step >= self.refine_stop:
-            return counts
-        self._update_state(params, state, info)
-        if step > self.refine_start and step % self.refine_every == 0:
-            counts = self._refine(params, optimizers, state, scene_extent)
-            state["grad2d"].zero_()
-            state["count"].zero_()
-        return counts
-
-    def _update_state(self, params: nn.ParameterDict, state: dict[str, Any], info: dict) -> None:
-        """Add each visible Gaussian's screen-space gradient norm, normalised to NDC units as gsplat does."""
-        means2d = info.get("means2d")
-        grad = None if means2d is None else means2d.grad
-        if grad is None:
-            return
-        n = params["means"].shape[0]
-        if grad.shape[-2:] != (n, 2):
-            raise ValueError(f"means2d grad must be [N, 2] or [C, N, 2] with N={n}, got {tuple(grad.shape)}")
-        grad = grad.detach().reshape(-1, n, 2)  # [C, N, 2]
-        n_cams = grad.shape[0]
-        # Pixel gradients times half the image size are NDC gradients (3DGS's threshold units); with C
-        # cameras the loss is a mean over them, so each camera's gradient is scaled back by C (gsplat).
-        scale = grad.new_tensor([info["width"] / 2.0, info["height"] / 2.0]) * n_cams
-        norms = (grad * scale).norm(dim=-1)  # [C, N]
-        radii = torch.as_tensor(info["radii"], device=grad.device).reshape(n_cams, n, -1)
-        visible = (radii > 0).all(dim=-1)  # [C, N]
-        state["grad2d"] += torch.where(visible, norms, torch.zeros_like(norms)).sum(dim=0)
-        state["count"] += visible.sum(dim=0).to(state["count"].dtype)
-
-    @torch.no_grad()
-    def _refine(
-        self, params: nn.ParameterDict, optimizers: Optimizers, state: dict[str, Any], scene_extent: float
-    ) -> dict[str, int]:
-        """Clone, split and prune once; returns the counts."""
-        n = params["means"].shape[0]
-        grads = state["grad2d"] / state["count"].clamp_min(1.0)
-        max_scale = params["log_scales"].exp().max(dim=-1).values
-        opacity = torch.sigmoid(params["opacity_logits"]).reshape(n)
-        grow = (grads > self.grad_threshold) & (opacity > self.grow_opacity_min)
-        grow = _within_budget(grow, grads, self.max_gaussians - n)
-        is_small = max_scale <= self.percent_dense * scene_extent
-        is_dupli, is_split = grow & is_small, grow & ~is_small
-
-        n_dupli = int(is_dupli.sum())
-        if n_dupli:
-            duplicate(params, optimizers, state, is_dupli)
-        # Clones go to the end and are never split in the same round.
-        is_split = torch.cat([is_split, is_split.new_zeros(n_dupli)])
-        n_split = int(is_split.sum())
-        if n_split:
-            split(
-                params,
-                optimizers,
-                state,
-                is_split,
-                generator=state.get("generator"),
-                scale_factor=self.split_scale_factor,
+    def after_backward(self, step: int, out: Render, cam: Camera) -> None:
+        """Densification, from this step's screen-space gradients (before the optimizers step)."""
+        if self.cfg.densify:
+            info = {"means2d": out.means2d, "radii": out.radii, "width": cam.width, "height": cam.height}
+            self.densify.step_post_backward(
+                self.field.splats, self.optimizers, self.state, step, info, self.extent
             )
 
-        opacity = torch.sigmoid(params["opacity_logits"]).reshape(-1)
-        is_prune = opacity < self.prune_opacity
-        if self.prune_scale3d is not None:
-            is_prune |= params["log_scales"].exp().max(dim=-1).values > self.prune_scale3d * scene_extent
-        n_prune = int(is_prune.sum())
-        if n_prune:
-            remove(params, optimizers, state, is_prune)
-        return {"cloned": n_dupli, "split": n_split, "pruned": n_prune}
+    def after_optimizer_step(self, step: int) -> str | None:
+        """Opacity decay after ``refine_start``, and a LOP round every ``lop_every`` iterations; returns
+        a line on the round, if one ran."""
+        cfg = self.cfg
+        if cfg.opacity_decay < 1.0 and step >= cfg.refine_start:
+            with torch.no_grad():
+                logits = self.field.splats["opacity_logits"]
+                logits.copy_(torch.logit(torch.sigmoid(logits) * cfg.opacity_decay, eps=1e-6))
+        if self.use_lop and (step + 1) % cfg.lop_every == 0:
+            self.lop_rounds.append(self._prune_outliers(step + 1))
+            last = self.lop_rounds[-1]
+            return f"LOP at iteration {step + 1}: removed {last['removed']} of {last['before']} Gaussians"
+        return None
 
+    def record(self) -> dict[str, Any]:
+        """field.json's ``carved`` (None when the run does not carve) and ``lop`` (None without LOP)."""
+        carved = {"removed": sum(c["removed"] for c in self.carved), "rounds": len(self.carved)}
+        return {"carved": carved if self.stereo else None, "lop": self.lop_rounds if self.use_lop else None}
 
-def _within_budget(grow: Tensor, grads: Tensor, budget: int) -> Tensor:
-    """Keep at most ``budget`` of the ``grow`` mask [N], those with the largest gradients (stable order)."""
-    n_grow = int(grow.sum())
-    if n_grow <= max(budget, 0):
-        return grow
-    keep = torch.zeros_like(grow)
-    if budget > 0:
-        candidates = grow.nonzero().squeeze(1)
-        order = torch.argsort(grads[candidates], descending=True, stable=True)
-        keep[candidates[order[:budget]]] = True
-    return keep
+    def _carve(self, step: int) -> dict[str, int]:
+        removed = carve_free_space(
+            self.field.splats, self.stereo, self.optimizers, self.state, self.cfg.carve_tolerance
+        )
+        return {"iteration": step, "removed": removed}
+
+    @torch.no_grad()
+    def _prune_outliers(self, step: int) -> dict[str, Any]:
+        """One LOP round (eq. 14-16): removes the language-group outliers."""
+        cfg, field = self.cfg, self.field
+        before = field.num_gaussians
+        result = lop_prune(
+            field.splats["means"].detach(),
+            field.gaussian_latents(),
+            self.targets.prototypes,
+            gamma=cfg.lop_gamma,
+            tau=cfg.lop_tau,
+        )
+        if result.num_pruned:
+            remove(field.splats, self.optimizers, self.state, result.prune)
+        return {
+            "iteration": step,
+            "before": before,
+            "removed": result.num_pruned,
+            "removed_by_level": list(result.pruned_by_level),
+        }
 
 
 @torch.no_grad()
-def duplicate(params: nn.ParameterDict, optimizers: Optimizers, state: dict[str, Any], mask: Tensor) -> None:
-    """Clone the Gaussians in ``mask``: copies are appended; their optimizer moments and statistics are 0.
-
-    Args:
-        params: per-Gaussian parameters [N, ...]; replaced by [N + M, ...].
-        optimizers: optimizers holding them.
-        state: strategy state; [N] tensors become [N + M].
-        mask: [N] bool, M of them True.
-    """
-    sel = mask.nonzero().squeeze(1)
-
-    def param_fn(name: str, p: Tensor) -> Tensor:
-        return torch.cat([p, p[sel]])
-
-    def zeros_fn(name: str, v: Tensor) -> Tensor:
-        return torch.cat([v, v.new_zeros(len(sel), *v.shape[1:])])
-
-    _edit(params, optimizers, state, param_fn, zeros_fn)
-
-
-@torch.no_grad()
-def split(
-    params: nn.ParameterDict,
-    optimizers: Optimizers,
+def carve_free_space(
+    splats: torch.nn.ParameterDict,
+    stereo: list[Surface],
+    optimizers: dict[str, torch.optim.Optimizer],
     state: dict[str, Any],
-    mask: Tensor,
-    *,
-    generator: torch.Generator | None = None,
-    scale_factor: float = 1.6,
-) -> None:
-    """Replace each Gaussian in ``mask`` by 2 children sampled from it (3DGS's densify_and_split).
-
-    Children's means are drawn from the parent's Gaussian, their scales are the parent's / scale_factor,
-    every other entry is copied. Children are appended after the untouched Gaussians; their optimizer
-    moments and statistics are 0. A zero quaternion counts as the identity rotation (no NaN).
-
-    Args:
-        params: per-Gaussian parameters [N, ...] with "means", "log_scales", "quats"; replaced by
-            [N + M, ...].
-        optimizers: optimizers holding them.
-        state: strategy state; [N] tensors become [N + M].
-        mask: [N] bool, M of them True.
-        generator: random generator of the samples (for reproducible runs).
-        scale_factor: divisor of the children's scales.
-    """
-    sel = mask.nonzero().squeeze(1)
-    rest = (~mask).nonzero().squeeze(1)
-    scales = params["log_scales"][sel].exp()  # [M, 3]
-    rotmats = quat_to_rotmat(normalize_quats(params["quats"][sel]))  # [M, 3, 3]
-    noise = torch.randn(2, len(sel), 3, generator=generator, device=scales.device, dtype=scales.dtype)
-    offsets = torch.einsum("nij,nj,bnj->bni", rotmats, scales, noise)  # [2, M, 3] in world coordinates
-
-    def param_fn(name: str, p: Tensor) -> Tensor:
-        if name == "means":
-            children = (p[sel] + offsets).reshape(-1, 3)
-        elif name == "log_scales":
-            children = torch.log(scales / scale_factor).repeat(2, 1)
-        else:
-            children = p[sel].repeat(2, *[1] * (p.dim() - 1))
-        return torch.cat([p[rest], children])
-
-    def zeros_fn(name: str, v: Tensor) -> Tensor:
-        return torch.cat([v[rest], v.new_zeros(2 * len(sel), *v.shape[1:])])
-
-    _edit(params, optimizers, state, param_fn, zeros_fn)
+    tolerance: float,
+) -> int:
+    """Removes the Gaussians whose centre lies in front of a surface a training view's stereo resolved
+    (in the free space its rays cross: space carving, Kutulakos and Seitz 2000); returns how many."""
+    means = splats["means"].detach()
+    free = torch.zeros(means.shape[0], dtype=torch.bool)
+    for cam, depth, resolved in stereo:
+        violation, _ = free_space_violation(means, cam, depth, resolved, tolerance)
+        free |= violation > 0
+    removed = int(free.sum())
+    if removed == means.shape[0]:  # the stereo disagrees with every Gaussian: keep them rather than none
+        return 0
+    if removed:
+        remove(splats, optimizers, state, free)
+    return removed
 
 
-@torch.no_grad()
-def remove(params: nn.ParameterDict, optimizers: Optimizers, state: dict[str, Any], mask: Tensor) -> None:
-    """Delete the Gaussians in ``mask`` from the parameters, the optimizer moments and the statistics.
-
-    Args:
-        params: per-Gaussian parameters [N, ...]; replaced by [N - M, ...].
-        optimizers: optimizers holding them.
-        state: strategy state; [N] tensors become [N - M].
-        mask: [N] bool, M of them True.
-    """
-    keep = ~mask
-
-    def keep_fn(name: str, v: Tensor) -> Tensor:
-        return v[keep]
-
-    _edit(params, optimizers, state, keep_fn, keep_fn)
+def _extent(field: LanguageField) -> float:
+    """Half the diagonal of the field's bounds: densification's scene scale."""
+    bounds = field.meta.bounds
+    return float(np.linalg.norm(bounds[1] - bounds[0]) / 2)
 
 
-def _edit(
-    params: nn.ParameterDict,
-    optimizers: Optimizers,
-    state: dict[str, Any],
-    param_fn: _EditFn,
-    optimizer_fn: _EditFn,
-) -> None:
-    """Apply a change of the Gaussian count to every parameter, its optimizer moments, and the state.
-
-    ``param_fn`` maps each parameter's data to the new data; ``optimizer_fn`` maps each per-Gaussian
-    optimizer tensor (Adam's exp_avg, exp_avg_sq, ...) and each per-Gaussian state tensor alike.
-    """
-    n = params["means"].shape[0]
-    opts = list({id(o): o for o in optimizers.values()}.values())
-    for name in list(params.keys()):
-        old = params[name]
-        if old.shape[0] != n:
-            raise ValueError(f"params[{name!r}] has {old.shape[0]} rows, params['means'] has {n}")
-        new = nn.Parameter(param_fn(name, old.detach()), requires_grad=old.requires_grad)
-        for opt in opts:
-            _swap_in_optimizer(opt, old, new, lambda v, name=name: optimizer_fn(name, v))
-        params[name] = new
-    for key, value in state.items():
-        if isinstance(value, Tensor) and value.dim() > 0 and value.shape[0] == n:
-            state[key] = optimizer_fn(key, value)
-
-
-def _swap_in_optimizer(
-    opt: torch.optim.Optimizer, old: nn.Parameter, new: nn.Parameter, fn: Callable[[Tensor], Tensor]
-) -> None:
-    """Put ``new`` where ``old`` is in ``opt``'s param groups and carry its state over through ``fn``."""
-    for group in opt.param_groups:
-        for i, p in enumerate(group["params"]):
-            if p is not old:
-                continue
-            group["params"][i] = new
-            st = opt.state.pop(old, None)
-            if st is not None:
-                for key, value in st.items():
-                    # Per-Gaussian moments have the parameter's shape; scalars such as Adam's step stay.
-                    if isinstance(value, Tensor) and value.shape == old.shape:
-                        st[key] = fn(value)
-                opt.state[new] = st
+def stereo_surfaces(cameras: list[Camera], start: StartPoints) -> list[Surface]:
+    """The training views' stereo depth maps as (camera, z-depth [H, W], resolved [H, W] bool)."""
+    if start.depths is None:
+        return []
+    surfaces = []
+    for cam, depth in zip(cameras, start.depths, strict=True):
+        resolved = np.isfinite(depth)
+        surfaces.append((cam, torch.from_numpy(np.where(resolved, depth, 0.0)), torch.from_numpy(resolved)))
+    return surfaces

@@ -97,7 +97,8 @@ def test_the_captured_scene_has_what_train_and_init_points_read(room_video) -> N
 
 @pytest.mark.slow
 def test_training_runs_on_the_three_views_capture_chose(room_video) -> None:
-    from langfield.training.trainer import TrainConfig, train
+    from langfield.training.config import TrainConfig
+    from langfield.training.loop import train
 
     _, scene_dir, _ = room_video
     scene = load_scene(scene_dir, resolution=4)

@@ -189,8 +189,9 @@ def test_read_points_refuses_a_file_that_is_not_a_point_cloud(tmp_path) -> None:
 
 
 def test_init_points_starts_from_the_point_cloud_and_needs_one(tmp_path) -> None:
-    from langfield.training.initialisation import start_points
-    from langfield.training.trainer import TrainConfig, init_method
+    from langfield.training.config import TrainConfig
+    from langfield.training.setup import init_method
+    from langfield.training.start import start_points
 
     rng = np.random.default_rng(3)
     cloud = (rng.uniform(-1, 1, (500, 3)).astype(np.float32), rng.uniform(0, 1, (500, 3)).astype(np.float32))

@@ -416,11 +416,11 @@ def test_train_flags_agree_with_train_config() -> None:
     import typing
 
     from langfield.cli import build_parser
-    from langfield.io.field_meta import LANGUAGE_FEATURES
+    from langfield.io.field_meta import LANGUAGE_DECODES, LANGUAGE_FEATURES
     from langfield.kernels import BACKEND_ALIASES
     from langfield.raster import BACKENDS
-    from langfield.training.initialisation import INIT_ALIGNS, INIT_METHODS
-    from langfield.training.trainer import CONFIG_FLAGS, LANGUAGE_DECODES, TrainConfig
+    from langfield.training.config import CONFIG_FLAGS, TrainConfig
+    from langfield.training.start import INIT_ALIGNS, INIT_METHODS
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     options = {s: a for a in sub.choices["train"]._actions for s in a.option_strings}

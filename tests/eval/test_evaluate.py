@@ -22,7 +22,8 @@ from langfield.eval.evaluate import write_report
 from langfield.eval.geometry import selection_scores
 from langfield.io.field_meta import FieldMeta
 from langfield.synthetic.ground_truth import uncovered_triangles
-from langfield.training.trainer import build_field, scene_bounds
+from langfield.training.setup import build_field
+from langfield.training.targets import scene_bounds
 
 W, H = 64, 48
 

@@ -12,7 +12,8 @@ from langfield.training.aggregate import (
     register_entries,
     with_latents,
 )
-from langfield.training.trainer import build_field, language_targets
+from langfield.training.setup import build_field
+from langfield.training.targets import language_targets
 
 W, H = 40, 30
 

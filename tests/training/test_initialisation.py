@@ -11,16 +11,15 @@ import pytest
 import langfield as lf
 from langfield.camera import Camera
 from langfield.synthetic import distance_to_surfaces, make_room
-from langfield.training.initialisation import (
+from langfield.training.start import (
     PlaneSweepConfig,
-    _trimmed_fit,
     dense_points,
     depth_prior_points,
-    depth_range,
     plane_sweep,
     start_points,
 )
-from langfield.training.pixels import project
+from langfield.training.start.depth_prior import _trimmed_fit
+from langfield.training.start.stereo import depth_range
 
 W, H = 96, 72
 
@@ -98,7 +97,7 @@ def test_dense_points_of_the_built_in_scene_are_near_its_surfaces(tmp_path) -> N
 
 def _cell_coverage(points: np.ndarray, cam: Camera, cell: int = 8) -> float:
     """Fraction of the view's cell x cell pixel blocks that some point projects into."""
-    uv, z = project(points.astype(np.float64), cam)
+    uv, z = cam.project(points.astype(np.float64))
     ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
     hit = np.zeros((cam.height // cell, cam.width // cell), dtype=bool)
     rows = (uv[ok, 1] // cell).astype(int).clip(0, hit.shape[0] - 1)
@@ -236,7 +235,7 @@ def test_unknown_method_and_depth_without_priors_are_errors() -> None:
 
 def test_projection_helper_matches_the_camera_convention() -> None:
     cams, _ = plane_views(z=2.0)
-    uv, z = project(np.array([[0.0, 0.0, -2.0]]), cams[1])
+    uv, z = cams[1].project(np.array([[0.0, 0.0, -2.0]]))
     np.testing.assert_allclose(uv[0], [cams[1].cx, cams[1].cy], atol=1e-9)
     assert z[0] == pytest.approx(2.0)
 
@@ -250,7 +249,7 @@ def test_training_records_the_start(tmp_path) -> None:
 
 
 def test_auto_start_is_the_depth_prior_where_training_uses_one(tmp_path) -> None:
-    from langfield.training.trainer import init_method
+    from langfield.training.setup import init_method
 
     scene = lf.load_scene(make_room(tmp_path, seed=0, width=64, height=48, n_test=1))
     assert init_method(scene, lf.TrainConfig()) == "depth"  # the room has depths/

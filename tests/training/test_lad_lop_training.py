@@ -14,8 +14,9 @@ from langfield.cli import main
 from langfield.eval.geometry import aligned_depth_error, count_floaters, depth_errors
 from langfield.field import LanguageField
 from langfield.io.scene import load_scene
+from langfield.training.config import TrainConfig
 from langfield.training.lad import LADTarget, depth_loss, lad_loss
-from langfield.training.trainer import TrainConfig, train
+from langfield.training.loop import train
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ import torch
 from langfield import LanguageField, TrainConfig, load_scene, train
 from langfield.model.language import language_loss, mask_balance
 from langfield.training.aggregate import register_entries
-from langfield.training.trainer import language_targets
+from langfield.training.targets import language_targets
 
 GEOMETRY = ("means", "log_scales", "quats", "opacity_logits")
 
@@ -70,7 +70,7 @@ def test_mask_balance_weighs_each_mask_by_its_area_to_a_power():
 
 
 def test_training_weighs_l_lf_by_mask_balance(scene, monkeypatch):
-    import langfield.training.trainer as trainer
+    import langfield.training.setup as setup
 
     seen = []
 
@@ -78,7 +78,7 @@ def test_training_weighs_l_lf_by_mask_balance(scene, monkeypatch):
         seen.append(power)
         return mask_balance(segments, power)
 
-    monkeypatch.setattr(trainer, "mask_balance", spy)
+    monkeypatch.setattr(setup, "mask_balance", spy)
     cfg = TrainConfig(iterations=2, num_gaussians=200, autoencoder_iterations=5, language_balance=0.75)
     field = train(scene, cfg, progress=False)
     assert seen == [0.75] * len(scene.names("train"))
@@ -244,7 +244,7 @@ def test_coarser_language_grid_is_recorded_and_reloads(scene, tmp_path):
 
 def test_autoencoder_is_trained_once_per_features_and_config():
     from encoders.autoencoder import AutoencoderConfig
-    from langfield.training.trainer import fit_autoencoder
+    from langfield.training.targets import fit_autoencoder
 
     rng = np.random.default_rng(0)
     features = rng.normal(size=(40, 512)).astype(np.float32)

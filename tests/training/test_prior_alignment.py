@@ -10,8 +10,8 @@ import pytest
 
 import langfield as lf
 from langfield.synthetic import distance_to_surfaces
-from langfield.training.initialisation import depth_prior_points
-from langfield.training.prior_alignment import CAP, alignment_cost, refine_alignment
+from langfield.training.start import depth_prior_points
+from langfield.training.start.alignment import CAP, alignment_cost, refine_alignment
 
 
 @pytest.fixture(scope="module")

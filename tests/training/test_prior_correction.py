@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import langfield as lf
-from langfield.training.initialisation import INIT_ALIGNS, depth_prior_points
-from langfield.training.prior_correction import (
+from langfield.training.start import INIT_ALIGNS, depth_prior_points
+from langfield.training.start.correction import (
     AGREE,
     GRID,
     _basis,

@@ -248,11 +248,6 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
 def test_virtual_term_runs_on_every_nth_iteration_from_its_start(
     scene, monkeypatch, every, start, steps
 ) -> None:
-    from langfield.training import trainer as T
-
-    calls = []
-    real = T._virtual_view_loss
-    monkeypatch.setattr(T, "_virtual_view_loss", lambda *a, **k: calls.append(1) or real(*a, **k))
     cfg = lf.TrainConfig(
         iterations=7,
         num_gaussians=200,
@@ -262,8 +257,9 @@ def test_virtual_term_runs_on_every_nth_iteration_from_its_start(
         virtual_every=every,
         virtual_start=start,
     )
-    lf.train(scene, cfg, progress=False)
-    assert len(calls) == steps
+    (record,) = lf.train(scene, cfg, progress=False).meta["loss_terms"]
+    assert record["steps"]["virtual"] == steps
+    assert record["steps"]["color"] == 7
 
 
 def _spy_render_sizes(monkeypatch) -> list[tuple[int, int]]:
@@ -299,7 +295,7 @@ def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(sce
 
 
 def test_area_resize_averages_blocks_and_passes_gradient() -> None:
-    from langfield.training.trainer import area_resize
+    from langfield.training.targets import area_resize
 
     x = torch.arange(4 * 6 * 2, dtype=torch.float32).reshape(4, 6, 2).requires_grad_(True)
     small = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=3, height=2)
@@ -388,7 +384,7 @@ def test_dark_backdrop_is_a_tall_dark_region_at_the_border() -> None:
 def test_empty_space_comes_from_alpha_or_a_dark_backdrop(tmp_path) -> None:
     import cv2
 
-    from langfield.training.trainer import empty_space
+    from langfield.training.targets import empty_space
 
     root = make_room(tmp_path / "room", seed=0, width=40, height=30, n_test=1)
     with_alpha = lf.load_scene(root)
@@ -409,7 +405,7 @@ def test_empty_space_comes_from_alpha_or_a_dark_backdrop(tmp_path) -> None:
 
 
 def test_backdrop_target_replaces_only_the_empty_part() -> None:
-    from langfield.training.trainer import backdrop_target
+    from langfield.training.targets import backdrop_target
 
     colour = torch.tensor([0.2, 0.5, 0.9])
     rgb = torch.rand(6, 5, 3)
@@ -513,11 +509,11 @@ def test_the_free_space_term_pulls_a_near_surface_back() -> None:
 
 
 def test_training_with_the_free_space_term_runs(scene, monkeypatch) -> None:
-    from langfield.training import trainer as T
+    from langfield.training import losses
 
     calls = []
-    real = T._visibility_loss
-    monkeypatch.setattr(T, "_visibility_loss", lambda *a, **k: calls.append(len(a[4])) or real(*a, **k))
+    real = losses.visibility_loss
+    monkeypatch.setattr(losses, "visibility_loss", lambda *a, **k: calls.append(len(a[4])) or real(*a, **k))
     cfg = lf.TrainConfig(
         iterations=5, num_gaussians=200, init="random", language=False, lambda_visibility=1.0
     )
@@ -527,11 +523,9 @@ def test_training_with_the_free_space_term_runs(scene, monkeypatch) -> None:
 
 
 def test_carving_removes_the_gaussians_in_front_of_a_resolved_surface_only() -> None:
-    from types import SimpleNamespace
-
     from langfield.model import gaussians as G
-    from langfield.training.strategy import DensifyStrategy
-    from langfield.training.trainer import _carve_free_space
+    from langfield.training.densify import DensifyStrategy
+    from langfield.training.strategy import carve_free_space
 
     a, b, depth, _ = _plane_views()
     resolved = torch.ones(30, 40, dtype=torch.bool)
@@ -542,9 +536,7 @@ def test_carving_removes_the_gaussians_in_front_of_a_resolved_surface_only() -> 
     splats = G.gaussians_at(points)
     optimizers = {k: torch.optim.Adam([p]) for k, p in splats.items()}
     state = DensifyStrategy().initialize_state(splats)
-    field = SimpleNamespace(splats=splats)
-    result = _carve_free_space(field, [(a, depth, resolved)], optimizers, state, 0.03, 7)
-    assert result == {"iteration": 7, "removed": 1}
+    assert carve_free_space(splats, [(a, depth, resolved)], optimizers, state, 0.03) == 1
     kept = splats["means"].detach()
     torch.testing.assert_close(kept, points[[0, 2, 3]])
     assert optimizers["means"].param_groups[0]["params"][0] is splats["means"]
@@ -552,11 +544,9 @@ def test_carving_removes_the_gaussians_in_front_of_a_resolved_surface_only() -> 
 
 
 def test_carving_that_would_remove_every_gaussian_removes_none() -> None:
-    from types import SimpleNamespace
-
     from langfield.model import gaussians as G
-    from langfield.training.strategy import DensifyStrategy
-    from langfield.training.trainer import _carve_free_space
+    from langfield.training.densify import DensifyStrategy
+    from langfield.training.strategy import carve_free_space
 
     a, _, depth, _ = _plane_views()
     points = torch.tensor([[-0.2, 0.0, -1.0], [0.1, 0.0, -1.5]])  # both in front of the plane
@@ -564,8 +554,7 @@ def test_carving_that_would_remove_every_gaussian_removes_none() -> None:
     optimizers = {k: torch.optim.Adam([p]) for k, p in splats.items()}
     state = DensifyStrategy().initialize_state(splats)
     stereo = [(a, depth, torch.ones(30, 40, dtype=torch.bool))]
-    result = _carve_free_space(SimpleNamespace(splats=splats), stereo, optimizers, state, 0.03, 0)
-    assert result == {"iteration": 0, "removed": 0}
+    assert carve_free_space(splats, stereo, optimizers, state, 0.03) == 0
     torch.testing.assert_close(splats["means"].detach(), points)
 
 
@@ -579,7 +568,7 @@ def test_training_with_carving_records_what_it_removed(scene) -> None:
 
 def test_a_view_at_half_size_averages_the_photo_and_samples_the_targets() -> None:
     from langfield.training.lad import LADTarget
-    from langfield.training.trainer import ViewTargets
+    from langfield.training.targets import ViewTargets
 
     cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=8, height=6)
     image = torch.rand(6, 8, 3)

@@ -1,4 +1,4 @@
-"""Sparse SfM points with known poses (langfield.training.sfm, pycolmap) on the synthetic room."""
+"""Sparse SfM points with known poses (langfield.training.start.sfm, pycolmap) on the synthetic room."""
 
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ from langfield.synthetic import distance_to_surfaces, make_room
 
 pytest.importorskip("pycolmap")
 
-from langfield.training.sfm import sfm_points  # noqa: E402
+from langfield.training.start.sfm import sfm_points  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from torch import nn
 
 from langfield.model import gaussians as G
 from langfield.raster.projection import quat_to_rotmat
-from langfield.training.strategy import DensifyStrategy, duplicate, remove, split
+from langfield.training.densify import DensifyStrategy, duplicate, remove, split
 
 BOUNDS = np.array([[-1.0, -2.0, 0.0], [1.0, 2.0, 3.0]])
 N = 40

@@ -1,4 +1,5 @@
-"""Tests of training (trainer.py): determinism, loss, densification, config checks, meta, callbacks."""
+"""Tests of training (langfield.training: setup, loop, losses): determinism, loss, densification, config
+checks, meta, callbacks."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ import torch
 
 from langfield import LanguageField, TrainConfig, load_scene, train
 from langfield.model import gaussians as G
-from langfield.training import trainer as T
-from langfield.training.trainer import color_loss, evaluate_psnr
+from langfield.training import setup as T
+from langfield.training.loop import evaluate_psnr
+from langfield.training.losses import color_loss
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +64,7 @@ def test_zero_iterations_returns_the_initial_field(scene) -> None:
 
 
 def test_zero_iterations_from_the_photos_returns_their_start_points(scene) -> None:
-    from langfield.training.initialisation import start_points
+    from langfield.training.start import start_points
 
     field = _train(scene, iterations=0, num_gaussians=300, seed=2, init="dense")
     cams = scene.cameras("train")

@@ -1,16 +1,16 @@
 """The training views' depth priors aligned to one another, for the ``depth`` start.
 
 A monocular prior is relative: each view needs its own scale and shift (of the depth, or of 1/z for a
-disparity) before it gives points. :func:`~langfield.training.initialisation.depth_prior_points` fits
+disparity) before it gives points. :func:`~langfield.training.start.depth_prior_points` fits
 them to depths the view already knows (its plane-sweep stereo), one view at a time; three views' stereo
 resolves 5-7 % of a room's pixels, often wrong matches of repeated tiles, and one bad view ruins a third
 of the start (a room of layout 7: the middle view's points 17 % within 6.4 cm of a surface, against 70 %
-for the line fitted to the true depths; docs/figures.md, "Aligning the priors to one another").
+for the line fitted to the true depths; docs/history/figures.md, "Aligning the priors to one another").
 
 With the poses known the aligned priors must also agree with each other, wherever they are textured or
 not: a pixel of view i at its aligned depth, projected into view j, should land at j's aligned depth
 there (the geometric consistency that COLMAP's fusion and
-:func:`~langfield.training.initialisation.stereo_depths` test point by point; here it is the cost of the
+:func:`~langfield.training.start.stereo_depths` test point by point; here it is the cost of the
 alignment). The baseline between the
 views fixes the scale that one view alone cannot.
 
@@ -36,7 +36,6 @@ import cv2
 import numpy as np
 
 from langfield.camera import Camera
-from langfield.training.pixels import cv_pose
 
 __all__ = ["CAP", "alignment_cost", "refine_alignment"]
 
@@ -84,9 +83,9 @@ class _Views:
             rows, cols = rows.ravel(), cols.ravel()
             keep = np.isfinite(prior[rows, cols])
             rows, cols = rows[keep], cols[keep]
-            rays = np.stack([(cols + 0.5 - cam.cx) / cam.fx, (rows + 0.5 - cam.cy) / cam.fy], axis=-1)
+            rays = cam.pixel_rays(rows, cols)[:, :2]
             self.grids.append((rays, prior[rows, cols].astype(np.float64)))
-            self.poses.append(cv_pose(cam))
+            self.poses.append(cam.pose_cv())
             if anchor is not None:
                 x, z = anchor
                 stride = max(1, len(x) // MAX_ANCHORS)
@@ -113,13 +112,10 @@ class _Views:
         z = _line_depth(values, line_i, self.depth_kind)
         r_i, t_i = self.poses[i]
         world = (np.concatenate([rays * z[:, None], z[:, None]], axis=-1) - t_i) @ r_i
-        r_j, t_j = self.poses[j]
-        p = world @ r_j.T + t_j
         cam = self.cameras[j]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = cam.fx * p[:, 0] / p[:, 2] + cam.cx
-            v = cam.fy * p[:, 1] / p[:, 2] + cam.cy
-        inside = (p[:, 2] > 0) & (u >= 0) & (u <= cam.width) & (v >= 0) & (v <= cam.height)
+        uv, depth = cam.project(world)
+        u, v = uv[:, 0], uv[:, 1]
+        inside = (depth > 0) & (u >= 0) & (u <= cam.width) & (v >= 0) & (v <= cam.height)
         err = np.full(len(z), np.inf)
         inside &= np.isfinite(z)
         if inside.any():
@@ -131,7 +127,7 @@ class _Views:
                 borderMode=cv2.BORDER_REPLICATE,
             )[0]
             with np.errstate(divide="ignore", invalid="ignore"):
-                err[inside] = np.log(p[inside, 2]) - np.log(_line_depth(sampled, line_j, self.depth_kind))
+                err[inside] = np.log(depth[inside]) - np.log(_line_depth(sampled, line_j, self.depth_kind))
         return np.where(np.isfinite(err), err, np.inf)
 
     def cross(self, i: int, j: int, line_i: Line, line_j: Line) -> float:

@@ -3,7 +3,7 @@
 A monocular prior's error is not one scale and shift per view: it also bends smoothly across the image
 (the built-in rooms' priors carry about 3 % of smooth multiplicative noise, a power of 1/z and a blur;
 :func:`langfield.synthetic.render.depth_prior`). After the per-view lines
-(:mod:`langfield.training.prior_alignment`) that bend is most of what is left: on a room of layout 7,
+(:mod:`langfield.training.start.alignment`) that bend is most of what is left: on a room of layout 7,
 with the lines the views agreed on, 73 % of the pixels' points lie within 6.4 cm of a surface; a
 field of this module's kind fitted to the true depths would put 96 % there. This module estimates the
 field from the photos and the other views:
@@ -32,7 +32,7 @@ Where a surface has no texture (a room's plain walls) no offset is kept, and the
 the textured pixels around it and the other views make of it. The GRID is the built-in prior's own
 noise grid, so on the rooms the field can follow that noise exactly; a network's bend has no grid, and
 the choice is not checked on one. Start points within 6.4 cm of a surface, lines -> corrected: layout 0
-0.672 -> 0.747, layout 4 0.726 -> 0.820, layout 7 0.663 -> 0.675, 0.3 s per room; docs/figures.md,
+0.672 -> 0.747, layout 4 0.726 -> 0.820, layout 7 0.663 -> 0.675, 0.3 s per room; docs/history/figures.md,
 "Correcting the priors".
 """
 
@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 
 from langfield.camera import Camera
-from langfield.training.pixels import box_mean, cv_pose, gray, window_stats, zncc
+from langfield.training.start.matching import box_mean, gray, window_stats, zncc
 
 __all__ = ["BAND", "GRID", "band_offsets", "correct_priors", "fuse_views", "smooth_field"]
 
@@ -60,28 +60,10 @@ AGREE, OFFSET_WEIGHT = 0.06, 5.0  # the agreement round: largest gap counted; we
 MAX_FIT_PIXELS = 40_000  # the agreement term is fitted on a regular grid of at most this many pixels
 
 
-def _rays(cam: Camera) -> np.ndarray:
-    """[H, W, 3] camera-frame directions with z = 1 through the pixel centres."""
-    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
-    return np.stack(
-        [(cols + 0.5 - cam.cx) / cam.fx, (rows + 0.5 - cam.cy) / cam.fy, np.ones((cam.height, cam.width))],
-        axis=-1,
-    )
-
-
-def _lift(cam: Camera, rays: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    r, t = cv_pose(cam)
-    return (rays * depth[..., None] - t) @ r
-
-
 def _into(cam: Camera, world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(z, map_x, map_y, inside) of world points [H, W, 3] in ``cam``: cv2.remap coordinates."""
-    r, t = cv_pose(cam)
-    p = world @ r.T + t
-    z = p[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = cam.fx * p[..., 0] / z + cam.cx - 0.5
-        v = cam.fy * p[..., 1] / z + cam.cy - 0.5
+    uv, z = cam.project(world)
+    u, v = uv[..., 0] - 0.5, uv[..., 1] - 0.5
     inside = (z > 0) & (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
     return (
         z,
@@ -110,12 +92,11 @@ def band_offsets(
         size = max(5, 2 * round((WINDOW * cam.width / 160 - 1) / 2) + 1)
         ref = grays[i]
         mu_r, var_r = window_stats(ref, size)
-        rays = _rays(cam)
         known = np.isfinite(depths[i]) & (depths[i] > 0)
         base = np.where(known, depths[i], 1.0)
         scores = np.full((STEPS, cam.height, cam.width), -1.0, np.float32)
         for k, step in enumerate(steps):
-            world = _lift(cam, rays, base * math.exp(step))
+            world = cam.unproject(base * math.exp(step))
             total = np.zeros((cam.height, cam.width), np.float32)
             count = np.zeros_like(total)
             for j, other in enumerate(cameras):
@@ -194,7 +175,7 @@ def _smooth(depth: np.ndarray) -> np.ndarray:
     return whole & (span < AGREE)
 
 
-def _gaps(cameras, rays, depths, i: int, smooth=None) -> tuple[np.ndarray, np.ndarray]:
+def _gaps(cameras, depths, i: int, smooth=None) -> tuple[np.ndarray, np.ndarray]:
     """Mean log-depth gap of view i's pixels to the other views' depths along i's rays, and the count
     of views that see the pixel within AGREE: the depth along the ray at which j's depth map agrees,
     by three fixed-point steps (exact for a view behind this one on the same axis). With ``smooth``
@@ -208,7 +189,7 @@ def _gaps(cameras, rays, depths, i: int, smooth=None) -> tuple[np.ndarray, np.nd
         z = own.copy()
         good = np.zeros(own.shape, dtype=bool)
         for _ in range(3):
-            zj, mx, my, inside = _into(other, _lift(cameras[i], rays[i], np.nan_to_num(z, nan=1.0)))
+            zj, mx, my, inside = _into(other, cameras[i].unproject(np.nan_to_num(z, nan=1.0)))
             seen = cv2.remap(
                 depths[j].astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
             )
@@ -257,11 +238,10 @@ def correct_priors(
         field = smooth_field(bases[k], offset, kept.astype(np.float64), robust=True)
         fields.append(field)
         offsets[k] = (offset, kept & (np.abs(offset - field) < KEEP))
-    rays = [_rays(c) for c in cams]
     current = [d * np.exp(f) for d, f in zip(base, fields, strict=True)]
     refitted = []
     for k, cam in enumerate(cams):
-        gap, count = _gaps(cams, rays, current, k)
+        gap, count = _gaps(cams, current, k)
         offset, kept = offsets[k]
         stride = max(1, math.ceil(math.sqrt(cam.height * cam.width / MAX_FIT_PIXELS)))
         sampled = np.zeros(count.shape, dtype=bool)
@@ -289,7 +269,7 @@ def fuse_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray]) -> tuple
     layer per view on a surface; fused, the surface starts as one layer at the views' mean. Only where
     the maps are smooth (:func:`_smooth`, this view's at the pixel and the other's at the sample):
     across a depth edge the interpolated depth is neither side's, and averaging it blurs the outline.
-    Rooms of 3 layouts x 3 seeds: docs/figures.md, "One layer per surface".
+    Rooms of 3 layouts x 3 seeds: docs/history/figures.md, "One layer per surface".
 
     Args:
         cameras: the views.
@@ -308,11 +288,10 @@ def fuse_views(cameras: Sequence[Camera], depths: Sequence[np.ndarray]) -> tuple
     stats: dict = {"views": [None] * len(cameras)}
     if len(used) >= 2:
         cams = [cameras[k] for k in used]
-        rays = [_rays(c) for c in cams]
         current = [result[k] for k in used]
         smooth = [_smooth(d).astype(np.uint8) for d in current]  # cv2.remap samples uint8, not bool
         for k, index in enumerate(used):
-            gap, count = _gaps(cams, rays, current, k, smooth)
+            gap, count = _gaps(cams, current, k, smooth)
             count = np.where(smooth[k] > 0, count, 0.0)
             # the mean of 1 + count log-depths: this view's and the agreeing views'
             result[index] = current[k] * np.exp(gap * count / (count + 1.0))
