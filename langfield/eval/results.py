@@ -44,7 +44,6 @@ BENCHMARKS = Path("benchmarks")
 RESULTS = Path("results")
 PAGE = Path("docs/results.md")
 ROOM = RESULTS / "scenes" / "room"
-COMMAND = "langfield results"
 NOT_RUN = "not yet run at this commit"
 
 
@@ -124,14 +123,15 @@ def run_benchmarks(
 HEADER = """\
 # Results
 
-This page is generated; do not edit it. `{command}` (or `make results`) at the repository's root runs
-every spec in `benchmarks/` as a sweep into `results/NAME/` and rewrites this page; a second call
-resumes, and `{command} --no-run` renders the page from the runs in `results/`, which are committed
-with it. Rendered at commit {commit} on {day}. Each table is the sweep's own: per scene and case, the mean ±
-sample standard deviation over the seeds finished (`langfield ablate`'s columns, [cli.md](cli.md)).
-Past measurements, each at the commit it names, are the lab notebook
-[history/figures.md](history/figures.md); why each default differs from the paper:
-[decisions.md](decisions.md).
+This page is generated; do not edit it. `langfield results` (or `make results`) at the repository's
+root runs every spec in `benchmarks/` as a sweep into `results/NAME/` and rewrites this page; a second
+call resumes, and `langfield results --no-run` renders the page from the runs in `results/`, which are
+committed with it. Each table is the sweep's own: per scene and case, the mean ± sample standard
+deviation over the seeds finished (`langfield ablate`'s columns, [cli.md](cli.md)). Past measurements,
+each at the commit it names, are the lab notebook [history/figures.md](history/figures.md); why each
+default differs from the paper: [decisions.md](decisions.md).
+
+Rendered at commit {commit} on {day}.
 """
 FOOTER = """\
 ## Speed
@@ -147,7 +147,7 @@ def render_page(root: str | Path, specs: list[Spec]) -> str:
     """docs/results.md: how the page is made, one section per spec, then where speed is measured."""
     root = Path(root).resolve()
     commit = source_commit()
-    lines = [HEADER.format(command=COMMAND, commit=_commit(commit), day=_day(time.time()))]
+    lines = [HEADER.format(commit=_commit(commit), day=_day(time.time()))]
     for spec in specs:
         lines += _section(root, spec, commit)
     return "\n".join([*lines, FOOTER])
