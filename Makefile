@@ -9,7 +9,7 @@ DEMO_OUT ?= demo_out
 LOCK ?= locks/main.txt
 EXPORT_LOCK ?= locks/export.txt
 
-.PHONY: install system test test-fast test-export test-latest lint demo lock clean
+.PHONY: install system test test-fast test-export test-latest lint demo results lock clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -60,6 +60,12 @@ test-export: system $(EXPORT_VENV)/.installed
 
 demo: install
 	$(BIN)/langfield demo --out $(DEMO_OUT)
+
+# docs/results.md from the benchmark specs (benchmarks/*.toml): each runs as a sweep into results/NAME
+# (finished runs are kept, so a second call resumes), then the page is rewritten. The real scenes are
+# ../shared/data beside the clone; each trains for 10-15 minutes on 2 cores.
+results: install
+	$(BIN)/langfield results
 
 # Refreshes both locks from the newest releases the ranges allow, in throwaway venvs; run the suite
 # (`make test test-export`) before committing the new locks.

@@ -265,7 +265,8 @@ class LanguageField(nn.Module):
         Each latent is scaled to unit length first (a zero latent stays zero). The decoder was trained
         on the encoder's unit latents; a rendered latent is a blend of them and shorter (mean norm 0.96
         on the built-in scene), off the sphere the decoder knows. LangSplat decodes it as it is;
-        projected, novel-view mIoU rose by 0.03 to 0.07 on five fields of three rooms (docs/figures.md).
+        projected, novel-view mIoU rose by 0.03 to 0.07 on five fields of three rooms
+        (docs/history/figures.md).
         """
         if self.decoder is None:
             raise ValueError("this field has no language decoder (it was trained without language features)")
@@ -347,7 +348,7 @@ class LanguageField(nn.Module):
         With a codebook each latent is replaced by its nearest entry (:meth:`codebook_indices`) before
         it is decoded: the scene's concepts are the training masks' features, and a rendered latent a
         few degrees off decodes to a neighbouring concept on the 3-d sphere, where they lie 6-13
-        degrees apart (docs/figures.md, "Language in novel views"); the nearest entry is still the
+        degrees apart (docs/history/figures.md, "Language in novel views"); the nearest entry is still the
         right one. The choice of entry passes no gradient. Without a codebook, :meth:`decode`.
         """
         if self.codebook is None:

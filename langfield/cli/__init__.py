@@ -1,4 +1,4 @@
-"""The ``langfield`` command: capture, train, ablate, sweep, render, eval, bench, demo, query, view.
+"""The ``langfield`` command: capture, train, ablate, sweep, results, render, eval, bench, demo, query, view.
 
 Each subcommand shows a progress bar on long work and ends with a one-line summary. Errors in the
 user's input (a missing file, a malformed scene, a bad flag value) are printed as one line naming the
@@ -11,11 +11,11 @@ import argparse
 import sys
 
 from langfield import __version__
-from langfield.cli import ablate, bench, capture, demo, models, query, render, sweep, train, view
+from langfield.cli import ablate, bench, capture, demo, models, query, render, results, sweep, train, view
 from langfield.cli import eval as eval_command
 
 # The subcommands in the order `langfield --help` lists them.
-COMMANDS = (capture, train, ablate, sweep, render, eval_command, bench, demo)
+COMMANDS = (capture, train, ablate, sweep, results, render, eval_command, bench, demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,10 +19,11 @@ A spec (TOML; paths relative to the spec's folder)::
 Everything is checked before the first run: the spec's keys, every scene (loaded, and its files read as
 ``langfield train`` reads them), every case's settings. Each run is the ablation's row
 (:func:`langfield.eval.ablate.run_case`), written to ``OUT/runs/<scene>__<case>__seed<seed>.json`` as
-soon as it finishes; ``OUT/sweep.json`` and ``OUT/sweep.md`` (mean and spread over the seeds per scene
-and case) are rewritten after every run. A run that raises is written with its error and shown in the
-table; the others go on. Run again with the same OUT, a sweep skips the runs already written (failed
-ones run again), so an interrupted sweep resumes where it stopped.
+soon as it finishes, with its settings, the git commit of the driver's langfield (:func:`source_commit`)
+and the worker's CPUs (:func:`machine`); ``OUT/sweep.json`` and ``OUT/sweep.md`` (mean and spread over
+the seeds per scene and case) are rewritten after every run. A run that raises is written with its error
+and shown in the table; the others go on. Run again with the same OUT, a sweep skips the runs already
+written (failed ones run again), so an interrupted sweep resumes where it stopped.
 
 Ray is the optional extra ``langfield[cluster]``. With no address a local Ray is started in the process
 (the embedded default; every CPU of the machine); ``--address auto`` joins the cluster this machine is
@@ -32,6 +33,9 @@ part of, ``ray://host:10001`` a remote one (docs/cluster.md).
 from __future__ import annotations
 
 import json
+import os
+import platform
+import subprocess
 import sys
 import time
 import traceback
@@ -168,11 +172,45 @@ def train_run(run: Run) -> dict:
 
         scene = load_scene(run.scene, **run.scene_args)
         row = run_case(scene, TrainConfig(**run.config), progress=False)
-        return {"row": row, "seconds": time.perf_counter() - t0}
+        return {"row": row, "seconds": time.perf_counter() - t0, "machine": machine()}
     except Exception as err:  # any failure of one run is reported, never fatal to the sweep
         tail = traceback.format_exc().strip().splitlines()[-6:]
         seconds = time.perf_counter() - t0
         return {"error": f"{type(err).__name__}: {err}", "traceback": tail, "seconds": seconds}
+
+
+def machine() -> dict[str, Any]:
+    """What ran a training: the machine's CPUs, their model, and the threads PyTorch was given."""
+    import torch
+
+    cpuinfo = Path("/proc/cpuinfo")
+    text = cpuinfo.read_text() if cpuinfo.is_file() else ""
+    model = next((ln.split(":", 1)[1].strip() for ln in text.splitlines() if ln.startswith("model name")), "")
+    return {"cpus": os.cpu_count(), "cpu": model or platform.machine(), "threads": torch.get_num_threads()}
+
+
+def source_commit() -> str:
+    """The git commit of the checkout langfield runs from, ``-dirty`` when its tracked files other than
+    documentation differ from it; ``unknown`` when langfield is not run from a git checkout of its own
+    (an installed copy)."""
+    package = Path(__file__).resolve().parents[1]
+
+    def git(*args: str) -> str | None:
+        try:
+            argv = ["git", "-C", str(package), *args]
+            done = subprocess.run(argv, capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.TimeoutExpired):  # no git on this machine
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    top = git("rev-parse", "--show-toplevel")
+    head = git("rev-parse", "HEAD")
+    # A checkout of another project that happens to hold an installed langfield is not ours.
+    if top is None or head is None or Path(top).resolve() != package.parent:
+        return "unknown"
+    # Documentation (docs/results.md above all, rewritten from these runs) changes no figure.
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)*.md")
+    return head + ("-dirty" if changed else "")
 
 
 def _with_threads(runner: Callable[[Run], dict], cpus: int) -> Callable[[Run], dict]:
@@ -189,7 +227,7 @@ def _as_json(value: Any) -> Any:
     return json.loads(json.dumps(value, default=float))
 
 
-def _done(spec: Spec, out: Path) -> dict[str, dict]:
+def finished_runs(spec: Spec, out: Path) -> dict[str, dict]:
     """The spec's runs already written in ``out`` (failed ones left out: they run again).
 
     Raises:
@@ -219,10 +257,11 @@ def run_sweep(
 ) -> dict:
     """Runs the spec's runs not yet in ``out`` on Ray (see the module's docstring); the summary."""
     out = Path(out)
-    results = _done(spec, out)
+    results = finished_runs(spec, out)
     todo = [r for r in spec.runs if r.key not in results]
     say(f"sweep {spec.path}: {len(spec.runs)} runs, {len(results)} already done, {len(todo)} to run")
     (out / "runs").mkdir(parents=True, exist_ok=True)
+    commit = source_commit()
     with ray_session(address, needed=bool(todo)) as ray:
         task = ray.remote(_with_threads(runner, spec.cpus_per_run)).options(
             num_cpus=spec.cpus_per_run, max_retries=0
@@ -231,19 +270,26 @@ def run_sweep(
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
             run = pending.pop(ready[0])
-            result = _gather(ray, ready[0])
-            result.update(
-                run={"scene": run.scene, "case": run.case, "seed": run.seed},
-                config=_as_json(run.config),
-                scene_args=_as_json(run.scene_args),
-                finished=time.time(),
-            )
-            _write_json(out / "runs" / f"{run.key}.json", result)
-            results[run.key] = result
+            result = results[run.key] = write_run(out, run, _gather(ray, ready[0]), commit)
             summary = write_summary(spec, out, results)
             said = result.get("error") or f"PSNR {result['row']['PSNR']:.2f} dB"
             say(f"[{len(summary['finished'])}/{len(spec.runs)}] {run.key}: {said}")
     return write_summary(spec, out, results)
+
+
+def write_run(out: Path, run: Run, result: dict, commit: str) -> dict:
+    """``result`` of ``run`` (:func:`train_run`'s) with the settings it ran with and the commit, written
+    to ``out/runs/<key>.json``; returned as written."""
+    result = {
+        **result,
+        "run": {"scene": run.scene, "case": run.case, "seed": run.seed},
+        "config": _as_json(run.config),
+        "scene_args": _as_json(run.scene_args),
+        "commit": commit,
+        "finished": time.time(),
+    }
+    _write_json(out / "runs" / f"{run.key}.json", result)
+    return result
 
 
 def _gather(ray, ref) -> dict:
@@ -295,23 +341,25 @@ def summarise(spec: Spec, results: dict[str, dict]) -> dict:
             "summary": summary}  # fmt: skip
 
 
-def format_summary(summary: dict) -> str:
-    """The summary as Markdown: one table per scene, ``mean ± std (n)``, then the failed runs."""
+def format_summary(summary: dict, level: int = 1) -> str:
+    """The summary as Markdown: one table per scene, ``mean ± std (n)``, then the failed runs; its title
+    a heading of ``level``, each scene one level below."""
 
     def cell(s: dict | None, digits: int) -> str:
         return "n/a" if s is None else f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
 
     digits = {"mIoU": 3, "mAcc": 3, "SSIM": 3, "depth_agreement": 3, "depth_abs_rel": 4}
-    lines = [f"# Sweep ({len(summary['finished'])} of {summary['runs']} runs finished)", ""]
+    title, sub = "#" * level, "#" * (level + 1)
+    lines = [f"{title} Sweep ({len(summary['finished'])} of {summary['runs']} runs finished)", ""]
     for scene, cases in summary["summary"].items():
-        lines += [f"## {scene}", "", "| case | seeds | " + " | ".join(COLUMNS) + " |"]
+        lines += [f"{sub} {scene}", "", "| case | seeds | " + " | ".join(COLUMNS) + " |"]
         lines.append("|" + "---|" * (len(COLUMNS) + 2))
         for case, v in cases.items():
             cells = [cell(v[c], digits.get(c, 2 if c in ("PSNR", "masked_PSNR") else 0)) for c in COLUMNS]
             lines.append(f"| {case} | {len(v['seeds'])} | " + " | ".join(cells) + " |")
         lines.append("")
     if summary["failed"]:
-        lines += ["## Failed runs", ""] + [f"- {k}: {e}" for k, e in summary["failed"].items()] + [""]
+        lines += [f"{sub} Failed runs", ""] + [f"- {k}: {e}" for k, e in summary["failed"].items()] + [""]
     return "\n".join(lines)
 
 

@@ -173,9 +173,9 @@ def num_gaussians_for_scene(bounds: np.ndarray, image_pixels: int, n_views: int)
     the images ask for detail. Images of 333 x 333 pixels or more (fern, DTU, lego with 3 views) reach
     the 50,000 cap. On the built-in scene (3 views of 160x120) the first pruning keeps about 40 % of the
     start whatever its size, so a bigger start pays for the first 600 iterations for nothing: 8,640
-    instead of 14,400 measured over three seeds in docs/figures.md ("A smaller start"). Reference points:
-    DNGaussian initialises 10k random points for Blender (8 views of 800x800), 1k for DTU and 50 x the
-    COLMAP cloud's largest side for LLFF.
+    instead of 14,400 measured over three seeds in docs/history/figures.md ("A smaller start").
+    Reference points: DNGaussian initialises 10k random points for Blender (8 views of 800x800), 1k for
+    DTU and 50 x the COLMAP cloud's largest side for LLFF.
     The bounds are checked but do not enter the rule.
 
     Args:

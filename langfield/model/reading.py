@@ -25,8 +25,9 @@ from torch import Tensor
 __all__ = ["CONCEPT_ANGLE_DEGREES", "VOTE_SHARE", "concept_groups", "vote_entries"]
 
 # A pixel keeps its blend's nearest entry when the Gaussians of that entry's concept carry at least this
-# share of its opacity. Nine rooms, novel-view mIoU of one training run each (docs/figures.md, "Reading
-# by vote"): share 0.1 0.861, 0.15 0.861, 0.25 0.859; 1 (the mode alone) 0.845; the blend alone 0.817.
+# share of its opacity. Nine rooms, novel-view mIoU of one training run each (docs/history/figures.md,
+# "Reading by vote"): share 0.1 0.861, 0.15 0.861, 0.25 0.859; 1 (the mode alone) 0.845; the blend
+# alone 0.817.
 VOTE_SHARE = 0.15
 # Entries closer than this are one concept (single linkage). The entries are the training views' masks;
 # one object's masks in different views lie 0-1 degree apart in the rooms, different objects 6 or more.
