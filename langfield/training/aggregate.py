@@ -10,7 +10,7 @@ targets' valid masks as ``t`` the sum of its weights. The rasterizer is the test
 gradients against the torch reference), so nothing here re-implements blending.
 
 Example:
-    >>> # field trained (or geometry-only), targets = langfield.training.trainer.language_targets(scene, cfg)
+    >>> # field trained (or geometry-only), targets = langfield.training.targets.language_targets(scene, cfg)
     >>> # latents, weight = aggregate_latents(field, cameras, targets.latents, targets.valid)
 """
 

@@ -42,8 +42,7 @@ from langfield.training.targets import (
 
 # The scene-sized run length (TrainConfig.iterations None). Each iteration fits one training view, so
 # the length follows the views: ITERATIONS_PER_VIEW visits of each, within [MIN, MAX]. Three views give
-# 1500 iterations (the sparse-view defaults were chosen at 1000-1500, docs/history/figures.md); fern's curve is
-# within 0.3 dB of its 1000-iteration point from 500 iterations on ("Time to quality").
+# 1500 iterations, where the sparse-view defaults were chosen (docs/decisions.md).
 ITERATIONS_PER_VIEW = 500
 
 

@@ -407,35 +407,3 @@ def test_console_script_smoke() -> None:
     assert done.returncode == 0
     for command in ("train", "render", "eval", "bench", "demo", "query", "view"):
         assert command in done.stdout
-
-
-def test_train_flags_agree_with_train_config() -> None:
-    """The flags `langfield train` names in TrainConfig's messages exist, and every choice list of the
-    parser is the one TrainConfig accepts (one home for each: the config's types and constants)."""
-    import argparse
-    import typing
-
-    from langfield.cli import build_parser
-    from langfield.io.field_meta import LANGUAGE_DECODES, LANGUAGE_FEATURES
-    from langfield.kernels import BACKEND_ALIASES
-    from langfield.raster import BACKENDS
-    from langfield.training.config import CONFIG_FLAGS, TrainConfig
-    from langfield.training.start import INIT_ALIGNS, INIT_METHODS
-
-    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-    options = {s: a for a in sub.choices["train"]._actions for s in a.option_strings}
-    assert set(CONFIG_FLAGS.values()) <= set(options)
-    hints = typing.get_type_hints(TrainConfig)
-    expected = {
-        "backend": ("auto", *BACKENDS, *BACKEND_ALIASES),
-        "init": INIT_METHODS,
-        "language_decode": LANGUAGE_DECODES,
-    }
-    for name, hint in hints.items():
-        if typing.get_origin(hint) is typing.Literal:
-            expected[name] = typing.get_args(hint)
-    assert {"language_features", "virtual_directions", "init"} <= set(expected)
-    assert expected["language_features"] == LANGUAGE_FEATURES  # what a field.json may say
-    assert expected["init_align"] == INIT_ALIGNS  # what depth_prior_points accepts
-    for name, values in expected.items():
-        assert tuple(options[CONFIG_FLAGS[name]].choices) == tuple(values), name

@@ -195,15 +195,23 @@ def scene(room_factory):
 
 
 @pytest.mark.slow
-def test_training_with_every_regulariser_runs_and_is_recorded(scene) -> None:
-    cfg = lf.TrainConfig(iterations=6, num_gaussians=300, init="random", drop_gamma=0.2)
-    more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1, "lambda_spread": 1.0}
-    cfg = lf.TrainConfig(**{**cfg.__dict__, **more})
+def test_training_with_every_regulariser_runs_each_term_and_records_it(scene) -> None:
+    more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1, "lambda_spread": 1.0,
+            "lambda_visibility": 1.0, "spread_start": 0.0, "virtual_every": 2}  # fmt: skip
+    cfg = lf.TrainConfig(iterations=6, num_gaussians=300, init="random", drop_gamma=0.2, **more)
     field = lf.train(scene, cfg, progress=False)
     assert all(torch.isfinite(p).all() for p in field.splats.values())
-    recorded = field.meta["config"]
-    assert recorded["drop_gamma"] == 0.2 and recorded["lambda_virtual"] == 1.0
-    assert recorded["lambda_anisotropy"] == 0.1 and recorded["lambda_spread"] == 1.0
+    (record,) = field.meta["loss_terms"]  # one stretch: fewer iterations than LOSS_LOG_EVERY
+    assert record["iterations"] == [0, 5]
+    # Each term ran where its schedule says: the virtual view every second step, the rest every step.
+    steps = record["steps"]
+    assert steps["virtual"] == 3
+    for name in ("color", "anisotropy", "smooth", "spread", "visibility", "opacity"):
+        assert steps[name] == 6, name
+    # The weighted terms add up to the total, and the penalties that cannot be negative are not.
+    assert sum(record["terms"].values()) == pytest.approx(record["total"], rel=1e-6)
+    assert all(record["terms"][n] >= 0 for n in ("anisotropy", "smooth", "spread", "visibility"))
+    assert record["terms"]["color"] > 0
 
 
 def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
@@ -465,11 +473,9 @@ def _plane_views() -> tuple[Camera, Camera, torch.Tensor, torch.Tensor]:
     return a, b, torch.full((30, 40), 2.0), torch.full((30, 40), 2.0)
 
 
-def test_backproject_inverts_the_projection() -> None:
-    from langfield.training.regularisers import backproject
-
+def test_unproject_inverts_the_projection() -> None:
     a, _, depth, _ = _plane_views()
-    points = backproject(depth, a)
+    points = a.unproject(depth)
     torch.testing.assert_close(points[..., 2], torch.full((30, 40), -2.0), atol=1e-5, rtol=0)
     w2c = a.world_to_camera()
     local = points.reshape(-1, 3) @ w2c[:3, :3].T + w2c[:3, 3]
@@ -478,18 +484,18 @@ def test_backproject_inverts_the_projection() -> None:
 
 
 def test_free_space_violation_counts_points_in_front_of_the_other_view_only() -> None:
-    from langfield.training.regularisers import backproject, free_space_violation
+    from langfield.training.regularisers import free_space_violation
 
     a, b, depth_a, depth_b = _plane_views()
     covered = torch.ones(30, 40, dtype=torch.bool)
     on_surface, valid = free_space_violation(
-        backproject(depth_a, a).reshape(-1, 3), b, depth_b, covered, 0.02
+        a.unproject(depth_a).reshape(-1, 3), b, depth_b, covered, 0.02
     )
     assert valid.float().mean() > 0.5 and float(on_surface.abs().max()) < 1e-5
-    near = backproject(depth_a * 0.5, a).reshape(-1, 3)  # halfway to a: b looks through these
+    near = a.unproject(depth_a * 0.5).reshape(-1, 3)  # halfway to a: b looks through these
     violation, valid = free_space_violation(near, b, depth_b, covered, 0.02)
     assert valid.any() and torch.allclose(violation[valid], torch.tensor((2.0 * 0.98 - 1.0) / 2.0), atol=1e-4)
-    behind = backproject(depth_a * 1.5, a).reshape(-1, 3)  # occluded from b: allowed
+    behind = a.unproject(depth_a * 1.5).reshape(-1, 3)  # occluded from b: allowed
     assert float(free_space_violation(behind, b, depth_b, covered, 0.02)[0].abs().max()) == 0.0
     nothing = torch.zeros(30, 40, dtype=torch.bool)  # b renders no surface there: no claim
     violation, valid = free_space_violation(near, b, depth_b, nothing, 0.02)
@@ -497,12 +503,12 @@ def test_free_space_violation_counts_points_in_front_of_the_other_view_only() ->
 
 
 def test_the_free_space_term_pulls_a_near_surface_back() -> None:
-    from langfield.training.regularisers import backproject, free_space_violation
+    from langfield.training.regularisers import free_space_violation
 
     a, b, depth_a, depth_b = _plane_views()
     near = (depth_a * 0.5).requires_grad_(True)
     violation, valid = free_space_violation(
-        backproject(near, a).reshape(-1, 3), b, depth_b, torch.ones(30, 40, dtype=torch.bool), 0.02
+        a.unproject(near).reshape(-1, 3), b, depth_b, torch.ones(30, 40, dtype=torch.bool), 0.02
     )
     violation.sum().backward()
     assert float(near.grad[valid.reshape(30, 40)].max()) < 0  # descent makes the depth larger
