@@ -1,4 +1,5 @@
-"""The shape the code keeps: no function outside the numba kernels longer than 80 lines."""
+"""The shape the code keeps: no function outside the numba kernels longer than 80 lines, no training
+module longer than 500."""
 
 from __future__ import annotations
 
@@ -27,3 +28,15 @@ def _long_functions() -> list[str]:
 
 def test_no_function_outside_the_kernels_is_longer_than_80_lines() -> None:
     assert _long_functions() == []
+
+
+MAX_TRAINING_MODULE_LINES = 500  # a module of langfield/training does one job (docs/layout.md)
+
+
+def test_no_training_module_is_longer_than_500_lines() -> None:
+    long = [
+        f"{path.relative_to(ROOT)}: {n} lines"
+        for path in sorted((ROOT / "langfield" / "training").rglob("*.py"))
+        if (n := len(path.read_text().splitlines())) > MAX_TRAINING_MODULE_LINES
+    ]
+    assert long == []
