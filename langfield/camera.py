@@ -16,6 +16,64 @@ import torch
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
+# A pose's rotation block may be off a rotation by float rounding of stored poses (float32 files: about
+# 1e-7), not by more: a scaled or sheared block makes every projection wrong without an error.
+ROTATION_TOLERANCE = 1e-4
+# Focal lengths between 1/20 and 100 image sizes (fields of view of about 170 down to 0.6 degrees), the
+# two within a factor 4 of each other, the principal point inside the image: outside these a value parsed
+# but is not a camera's.
+FOCAL_RANGE = (0.05, 100.0)
+MAX_ASPECT = 4.0
+
+
+def _check_pose(name: str, c2w: np.ndarray) -> None:
+    """Refuses a camera-to-world matrix that is not a rigid motion, with a hint at what it looks like."""
+    if np.abs(c2w[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        raise ValueError(
+            f"camera {name!r}: the pose's bottom row must be 0 0 0 1, got {np.round(c2w[3], 6).tolist()} "
+            "(a transposed matrix?)"
+        )
+    r = c2w[:3, :3]
+    gram = r.T @ r
+    error = float(np.abs(gram - np.eye(3)).max())
+    if error > ROTATION_TOLERANCE:
+        scales = np.sqrt(np.diag(gram))
+        off_diagonal = float(np.abs(gram - np.diag(np.diag(gram))).max())
+        if off_diagonal <= ROTATION_TOLERANCE * scales.max() ** 2 and np.ptp(scales) <= 1e-3 * scales.max():
+            hint = (
+                f"it is a rotation scaled by {scales.mean():.6g}: a scene's scale belongs in the translation"
+            )
+        else:
+            hint = "its columns are not orthonormal"
+        raise ValueError(
+            f"camera {name!r}: the pose's rotation block is not a rotation (R^T R differs from I by "
+            f"{error:.2g}); {hint}"
+        )
+    if np.linalg.det(r) < 0:
+        raise ValueError(
+            f"camera {name!r}: the pose's rotation is a reflection (determinant -1): one axis is flipped; "
+            "poses are camera-to-world with x right, y up, z back (OpenGL), not OpenCV's y down, z forward"
+        )
+
+
+def _check_intrinsics(name: str, width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> None:
+    """Refuses intrinsics that parse but cannot belong to this image size (module constants)."""
+    size = max(width, height)
+    low, high = FOCAL_RANGE[0] * size, FOCAL_RANGE[1] * size
+    for key, focal in (("fx", fx), ("fy", fy)):
+        if not low <= focal <= high:
+            raise ValueError(
+                f"camera {name!r}: {key} {focal:g} pixels is outside [{low:g}, {high:g}] for a "
+                f"{width}x{height} image (a focal length in millimetres, or for another image size?)"
+            )
+    if max(fx / fy, fy / fx) > MAX_ASPECT:
+        raise ValueError(f"camera {name!r}: fx {fx:g} and fy {fy:g} differ by more than {MAX_ASPECT:g}x")
+    if not (0.0 <= cx <= width and 0.0 <= cy <= height):
+        raise ValueError(
+            f"camera {name!r}: principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image"
+        )
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A pinhole camera.
@@ -56,6 +114,8 @@ class Camera:
         intr = np.array([self.fx, self.fy, self.cx, self.cy], dtype=np.float64)
         if not np.isfinite(intr).all() or self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"camera {self.name!r}: focal lengths must be positive and finite")
+        _check_pose(self.name, c2w)
+        _check_intrinsics(self.name, self.width, self.height, self.fx, self.fy, self.cx, self.cy)
         object.__setattr__(self, "c2w", c2w)
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))

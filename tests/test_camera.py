@@ -64,3 +64,47 @@ def test_points_behind_or_at_the_camera_project_to_finite_coordinates_with_their
     np.testing.assert_allclose(depth, [z], atol=1e-15)
     uv_t, depth_t = cam.project(torch.tensor(world))
     assert torch.isfinite(uv_t).all() and float(depth_t[0]) == pytest.approx(z, abs=1e-15)
+
+
+def _posed(c2w=None, **intrinsics) -> Camera:
+    base = Camera.look_at((0.4, -1.5, 0.7), (0.1, 0.2, 0.0), width=64, height=48)
+    values = {"fx": base.fx, "fy": base.fy, "cx": base.cx, "cy": base.cy, **intrinsics}
+    return Camera("v", 64, 48, values["fx"], values["fy"], values["cx"], values["cy"],
+                  base.c2w if c2w is None else c2w)  # fmt: skip
+
+
+def test_a_pose_rounded_to_float32_is_a_camera() -> None:
+    pose = _posed().c2w.astype(np.float32).astype(np.float64)
+    assert _posed(pose).c2w.shape == (4, 4)
+
+
+@pytest.mark.parametrize(
+    ("change", "said"),
+    [
+        (lambda m: m[:3, :3].__imul__(1.5), "rotation scaled by 1.5"),
+        (lambda m: m[:3, 0].__iadd__(0.1 * m[:3, 1]), "not orthonormal"),
+        (lambda m: m[:3, 2].__imul__(-1.0), "reflection"),
+        (lambda m: m.__setitem__((3, 0), 0.5), "bottom row"),
+    ],
+    ids=["scaled", "sheared", "mirrored", "bottom-row"],
+)
+def test_a_pose_that_is_not_a_rigid_motion_is_refused_with_a_hint(change, said) -> None:
+    pose = _posed().c2w.copy()
+    change(pose)
+    with pytest.raises(ValueError, match=said):
+        _posed(pose)
+
+
+@pytest.mark.parametrize(
+    ("intrinsics", "said"),
+    [
+        ({"fx": 2.0, "fy": 2.0}, "fx 2 pixels is outside"),
+        ({"fx": 9000.0, "fy": 9000.0}, "outside"),
+        ({"fy": 300.0}, "differ by more than"),
+        ({"cx": 70.0}, "principal point"),
+        ({"cy": -1.0}, "principal point"),
+    ],
+)
+def test_intrinsics_that_cannot_belong_to_the_image_are_refused(intrinsics, said) -> None:
+    with pytest.raises(ValueError, match=said):
+        _posed(**intrinsics)

@@ -391,3 +391,117 @@ def test_every_kernel_is_cached_after_the_warm_up() -> None:
     langfield.cli.warmup.warm_up()
     assert len(langfield.kernels._dispatchers()) >= 9
     assert langfield.kernels.uncompiled_kernels() == []
+
+
+# ---------------------------------------------------------------- values that parse but cannot be right
+
+
+def _edited_scene(scene_dir: Path, dest: Path, edit) -> Path:
+    """A copy of the scene whose transforms.json ``edit(meta)`` changed."""
+    root = copy_scene(scene_dir, dest)
+    meta = json.loads((root / "transforms.json").read_text())
+    edit(meta)
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return root
+
+
+def _scaled(meta) -> None:
+    m = np.array(meta["frames"][1]["transform_matrix"])
+    m[:3, :3] *= 2.0
+    meta["frames"][1]["transform_matrix"] = m.tolist()
+
+
+def _mirrored(meta) -> None:
+    m = np.array(meta["frames"][1]["transform_matrix"])
+    m[:3, 1] *= -1.0  # y down: an OpenCV camera written as it is
+    meta["frames"][1]["transform_matrix"] = m.tolist()
+
+
+def _transposed(meta) -> None:
+    meta["frames"][1]["transform_matrix"] = np.array(meta["frames"][1]["transform_matrix"]).T.tolist()
+
+
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (_scaled, "rotation scaled by 2"),
+        (_mirrored, "reflection"),
+        (_transposed, "bottom row"),
+        (lambda meta: meta.update(fl_x=1.5, fl_y=1.5), "fx 1.5 pixels"),  # millimetres
+        (lambda meta: meta.update(cx=-30.0), "principal point"),
+        (lambda meta: meta.update(fl_y=400.0), "differ by more than"),
+    ],
+    ids=["scaled", "mirrored", "transposed", "focal-in-mm", "principal-point", "aspect"],
+)
+def test_a_camera_that_is_not_a_camera_exits_2_naming_file_and_frame(
+    scene_dir, tmp_path, capsys, no_work, edit, said
+) -> None:
+    root = _edited_scene(scene_dir, tmp_path / "scene", edit)
+    line = run_error(train_argv(root, tmp_path / "out"), capsys)
+    assert str(root / "transforms.json") in line and said in line
+    assert not (tmp_path / "out").exists()
+
+
+def test_fewer_training_views_than_a_run_trains_on_exits_2_naming_them(scene_dir, tmp_path, capsys, no_work):
+    root = _edited_scene(scene_dir, tmp_path / "scene", lambda meta: meta["frames"][2].update(split="test"))
+    line = run_error(train_argv(root, tmp_path / "out"), capsys)
+    assert "2 training view(s) (train_000, train_001)" in line and "--n-views 2" in line
+    assert load_scene(root, n_views=2).names("train") == ["train_000", "train_001"]  # on purpose
+
+
+def test_a_view_named_twice_exits_2(scene_dir, tmp_path, capsys, no_work) -> None:
+    line = run_error(
+        train_argv(scene_dir, tmp_path / "out", "--views", "train_000,train_000,train_001"), capsys
+    )
+    assert "'train_000'" in line and "a second time" in line
+    line = run_error(train_argv(scene_dir, tmp_path / "out", "--views", "0,train_000,train_001"), capsys)
+    assert "a second time" in line
+
+
+def test_a_phrase_table_without_the_canonical_phrases_exits_2_before_training(
+    scene_dir, tmp_path, capsys, no_work
+) -> None:
+    root = copy_scene(scene_dir, tmp_path / "scene")
+    with np.load(root / "text_embeddings.npz") as npz:
+        table = {k: npz[k] for k in npz.files if k not in ("stuff", "texture")}
+    np.savez(root / "text_embeddings.npz", **table)
+    line = run_error(train_argv(root, tmp_path / "out"), capsys)
+    assert "text_embeddings.npz" in line and "'stuff', 'texture'" in line
+
+
+def test_an_empty_object_mask_exits_2_before_training(scene_dir, tmp_path, capsys, no_work) -> None:
+    root = copy_scene(scene_dir, tmp_path / "scene")
+    (root / "masks").mkdir()
+    for name in load_scene(root).names("all"):
+        mask = np.full((H, W), 255, np.uint8)
+        if name == "test_001":
+            mask[:] = 0  # parses as a mask, but the masked scores would compare no pixel
+        cv2.imwrite(str(root / "masks" / f"{name}.png"), mask)
+    line = run_error(train_argv(root, tmp_path / "out"), capsys)
+    assert "test_001.png" in line and "empty" in line
+
+
+def _table_without(scene_dir: Path, dest: Path, *dropped: str) -> Path:
+    with np.load(scene_dir / "text_embeddings.npz") as npz:
+        table = {k: npz[k] for k in npz.files if k not in dropped}
+    np.savez(dest, **table)
+    return dest
+
+
+def test_query_refuses_a_phrase_table_without_the_canonical_phrases(scene_dir, field_dir, tmp_path, capsys):
+    table = _table_without(scene_dir, tmp_path / "table.npz", "object")
+    argv = ["query", field_dir, "sofa", "--text-encoder", table, "--save", tmp_path / "queries"]
+    line = run_error(argv, capsys)
+    assert "table.npz" in line and "'object'" in line
+    assert not (tmp_path / "queries").exists()
+
+
+def test_the_viewer_refuses_a_phrase_table_without_the_canonical_phrases_before_it_serves(
+    scene_dir, field_dir, tmp_path
+) -> None:
+    from encoders.text_table import TextTableError
+    from langfield.viewer.server import Viewer
+
+    table = _table_without(scene_dir, tmp_path / "table.npz", "things")
+    with pytest.raises(TextTableError, match="'things'"):
+        Viewer(LanguageField.load(field_dir), None, port=0, text_encoder=table)

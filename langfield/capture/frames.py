@@ -125,8 +125,14 @@ def _inspect_photos(folder: Path) -> InputSummary:
     return InputSummary("photos", tuple(files), tuple(seen), tuple(sizes), len(files), focal_35mm=focal)
 
 
+# 35 mm-equivalent focal lengths of real lenses, from a fisheye's to a long telephoto's: a tag outside
+# it (0, a camera that writes the true focal length there, a corrupted value) is no prior at all.
+EXIF_FOCAL_RANGE = (8.0, 2000.0)
+
+
 def exif_focal_35mm(path: Path) -> float | None:
-    """The photo's EXIF FocalLengthIn35mmFilm (tag 0xA405) in millimetres, or None where it has none."""
+    """The photo's EXIF FocalLengthIn35mmFilm (tag 0xA405) in millimetres, or None where it has none or
+    one outside ``EXIF_FOCAL_RANGE``."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -138,7 +144,8 @@ def exif_focal_35mm(path: Path) -> float | None:
         value = float(value)
     except (TypeError, ValueError):
         return None
-    return value if math.isfinite(value) and value > 0 else None
+    low, high = EXIF_FOCAL_RANGE
+    return value if math.isfinite(value) and low <= value <= high else None
 
 
 def focal_pixels(focal_35mm: float, width: int, height: int) -> float:

@@ -132,4 +132,7 @@ def summary_lines(report: dict, out: str) -> list[str]:
         f"captured in {report['seconds']['total']:.1f} s: train {', '.join(scene['train'])}; "
         f"{len(scene['test'])} test views; scene in {out}"
     )
+    if len(scene["train"]) < 3:  # load_scene asks a run on fewer views to be confirmed
+        n = len(scene["train"])
+        lines.append(f"  {n} training view(s): train with --n-views {n}")
     return lines

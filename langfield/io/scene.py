@@ -196,6 +196,8 @@ class Scene:
         if not path.is_file():
             return None
         inside = read_mask(path, "object mask", self._layout.frames[i].camera).astype(np.float32)
+        if not inside.any():  # the masked scores would compare no pixel: a PSNR of inf
+            raise SceneError(f"{path}: the object mask is empty (no non-zero pixel); give the object's pixels")
         return self._align(i, inside, cv2.INTER_AREA, cv2.BORDER_CONSTANT) >= 0.5
 
     def segmentations(self, name: str | int) -> dict[str, np.ndarray]:
@@ -344,7 +346,8 @@ def load_scene(
     """Read a scene folder (transforms.json, Blender pair, LLFF or COLMAP; see the module docstring).
 
     Training views: explicit `views` (names or indices) are the train split and every other view is
-    test. Otherwise the frames' `split` fields, if any frame has one. Otherwise `n_views` (default 3)
+    test. Otherwise the frames' `split` fields, if any frame has one (fewer than 3 training views there
+    must be confirmed by `n_views`, else SceneError). Otherwise `n_views` (default 3)
     spread evenly over the non-test frames, where test is every 8th frame (0, 8, 16, ...), as in the
     RegNeRF / DNGaussian protocol; frames in neither split get split None. An explicit `n_views`
     overrides the file's splits but keeps its test frames, if it has any. A scene too small to hold
@@ -390,7 +393,16 @@ def _choose_splits(
         return _explicit_splits(layout, views, n_views)
     file_splits = [f.split for f in layout.frames]
     has_splits = any(s is not None for s in file_splits)
+    train = [f.name for f, s in zip(layout.frames, file_splits, strict=True) if s == "train"]
+    if has_splits and n_views is not None and n_views == len(train):
+        return file_splits  # the file's own training views, their number confirmed
     if has_splits and n_views is None:
+        if 0 < len(train) < _DEFAULT_N_VIEWS:
+            raise SceneError(
+                f"{layout.source}: its split has {len(train)} training view(s) ({', '.join(train)}), fewer "
+                f"than the {_DEFAULT_N_VIEWS} a run trains on; give n_views={len(train)} (--n-views "
+                f"{len(train)}) to train on them on purpose"
+            )
         return file_splits
     file_test = [i for i, s in enumerate(file_splits) if s == "test"]
     return _protocol_splits(layout, n_views or _DEFAULT_N_VIEWS, file_test or None)
@@ -410,8 +422,9 @@ def _explicit_splits(layout: Layout, views: Sequence[str | int], n_views: int | 
             index = names.index(key)
         else:
             raise SceneError(f"views: {layout.source} has no view {key!r}; known views: {listing(names)}")
-        if index not in chosen:
-            chosen.append(index)
+        if index in chosen:
+            raise SceneError(f"views: {key!r} names view {names[index]!r} a second time; give each view once")
+        chosen.append(index)
     if not chosen:
         raise SceneError("views: no training views given")
     if n_views is not None and n_views != len(chosen):

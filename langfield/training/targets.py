@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from encoders.autoencoder import AutoencoderConfig, LanguageAutoencoder, train_autoencoder
 from encoders.cache import read_feature_cache
+from encoders.text_table import TableTextEncoder
 from langfield.camera import Camera
 from langfield.io.scene import Scene
 from langfield.model.language import N_LEVELS
@@ -73,7 +74,8 @@ def _all_or_none(names: list[str], have: list[str], wanted: bool | None, what: s
 def check_inputs(scene: Scene, cfg: TrainConfig, progress: bool = True) -> None:
     """Reads and checks every file training and the evaluation after it will read, before any work:
     each view's image (its size against its intrinsics), depth prior, feature cache and segmentation
-    masks, the bounds, and whether the training views agree on having language and depth targets.
+    masks, the bounds, the phrase table (it must hold the canonical phrases every query is compared
+    with), and whether the training views agree on having language and depth targets.
 
     Raises:
         ValueError: the first problem, naming the file or setting (a SceneError, FeatureCacheError).
@@ -82,6 +84,8 @@ def check_inputs(scene: Scene, cfg: TrainConfig, progress: bool = True) -> None:
     if not train_names:
         raise ValueError(f"{scene.root}: no training views; choose them with views= or n_views=")
     scene_bounds(scene, cfg)
+    if scene.text_embeddings_path is not None:  # the field will answer queries with it: read it now
+        TableTextEncoder(scene.text_embeddings_path)
     for name in tqdm(scene.names("all"), desc="check", disable=not progress, leave=False):
         scene.check_view(name)
     if cfg.language is not False:

@@ -33,7 +33,7 @@ import viser.transforms as tf
 from encoders.text_table import UnknownPhraseError
 from langfield.camera import Camera
 from langfield.model import gaussians as G
-from langfield.query import MATCH_RELEVANCY, Query
+from langfield.query import MATCH_RELEVANCY, Query, text_encoder_for
 from langfield.raster.projection import covariance_3d
 from langfield.viewer.paths import look_target
 from langfield.viewer.video import heat_of, render_rgb, to_uint8
@@ -100,6 +100,9 @@ class Viewer:
         save: str | Path = "selections",
     ) -> None:
         self.field = field
+        if field.has_language and (text_encoder is not None or field.meta.text_encoder is not None):
+            # Read now, so that a phrase table that cannot answer stops the viewer before it serves.
+            text_encoder = text_encoder_for(field, text_encoder)
         self.text_encoder = text_encoder
         self.save = Path(save)
         self.query: Query | None = None

@@ -218,5 +218,9 @@ def test_exif_focal_length_is_read_where_a_photo_has_one(tmp_path) -> None:
     image.save(tmp_path / "b.png")
     assert exif_focal_35mm(tmp_path / "a.jpg") == 26.0
     assert exif_focal_35mm(tmp_path / "b.png") is None
+    for impossible in (1, 5000):  # parses, but is no lens's 35 mm-equivalent: no prior
+        exif.get_ifd(0x8769)[0xA405] = impossible
+        image.save(tmp_path / f"c{impossible}.jpg", exif=exif)
+        assert exif_focal_35mm(tmp_path / f"c{impossible}.jpg") is None
     # 35 mm-equivalent keeps the diagonal field of view of a 36 x 24 mm frame.
     assert abs(focal_pixels(36.0, 3600, 2400) - 3600) < 1e-9

@@ -210,7 +210,7 @@ def test_duplicate_file_names_get_folder_names(tmp_path: Path) -> None:
     for split, frame in zip(("train", "test"), meta["frames"], strict=True):
         _write_image(tmp_path / split / "r_0.png")
         frame.update(file_path=f"{split}/r_0.png", split=split)
-    scene = load_scene(_save(tmp_path, meta))
+    scene = load_scene(_save(tmp_path, meta), n_views=1)
     assert scene.names("all") == ["train/r_0", "test/r_0"]
     assert scene.camera("test/r_0").name == "test/r_0"
 
@@ -399,7 +399,9 @@ def test_file_splits_and_explicit_views(tmp_path: Path) -> None:
     meta = _transforms(tmp_path, n=5)
     for frame, split in zip(meta["frames"], ["train", "test", "train", None, "test"], strict=True):
         frame["split"] = split
-    scene = load_scene(_save(tmp_path, meta))
+    with pytest.raises(SceneError, match=r"2 training view\(s\) \(000, 002\).*--n-views 2"):
+        load_scene(_save(tmp_path, meta))  # fewer than a run trains on, unless confirmed
+    scene = load_scene(tmp_path, n_views=2)
     assert scene.names("train") == ["000", "002"] and scene.names("test") == ["001", "004"]
     chosen = scene.with_training_views(["003", 0])
     assert chosen.names("train") == ["000", "003"] and chosen.names("test") == ["001", "002", "004"]
