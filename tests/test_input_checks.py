@@ -505,3 +505,19 @@ def test_the_viewer_refuses_a_phrase_table_without_the_canonical_phrases_before_
     table = _table_without(scene_dir, tmp_path / "table.npz", "things")
     with pytest.raises(TextTableError, match="'things'"):
         Viewer(LanguageField.load(field_dir), None, port=0, text_encoder=table)
+
+
+def test_a_camera_facing_away_from_the_scene_box_exits_2_with_a_hint(scene_dir, tmp_path, capsys, no_work):
+    def opencv_axes(meta) -> None:
+        meta["aabb"] = [[-0.3, -0.3, 0.3], [0.3, 0.3, 0.9]]  # a box the room's cameras look at
+        m = np.array(meta["frames"][1]["transform_matrix"])
+        m[:3, 1:3] *= -1.0  # y down, z forward: still a rotation, looking the other way
+        meta["frames"][1]["transform_matrix"] = m.tolist()
+
+    root = _edited_scene(scene_dir, tmp_path / "scene", opencv_axes)
+    line = run_error(train_argv(root, tmp_path / "out"), capsys)
+    assert "'train_001'" in line and "behind the camera" in line and "world-to-camera" in line
+    good = _edited_scene(
+        scene_dir, tmp_path / "good", lambda meta: meta.update(aabb=[[-0.3, -0.3, 0.3], [0.3, 0.3, 0.9]])
+    )
+    assert load_scene(good).names("train")  # the same box is in front of every camera

@@ -49,7 +49,24 @@ def _split_frames(path: Path, meta: dict, split: str) -> list[Frame]:
 
 def _json_layout(root: Path, source: Path, meta: dict, frames: list[Frame]) -> Layout:
     frames = unique_names(root, source, frames)
-    return Layout(root, source, frames, depth_kind(root, source, meta), aabb=_aabb(source, meta))
+    aabb = _aabb(source, meta)
+    if aabb is not None:
+        _check_facing(source, frames, aabb)
+    return Layout(root, source, frames, depth_kind(root, source, meta), aabb=aabb)
+
+
+def _check_facing(source: Path, frames: tuple[Frame, ...], aabb: np.ndarray) -> None:
+    """Refuses a frame whose camera sees none of the scene's box: the box is convex, so when all its
+    corners lie behind the camera it all does. Poses that are world-to-camera, or in OpenCV's axes,
+    usually fail this for most frames."""
+    corners = np.array([[aabb[i][0], aabb[j][1], aabb[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    for frame in frames:
+        _, z = frame.camera.project(corners)
+        if (z <= 0).all():
+            raise SceneError(
+                f"{source}: frame {frame.name!r}: the scene's aabb lies entirely behind the camera; are the "
+                "poses world-to-camera, or in OpenCV's axes (z forward) instead of camera-to-world OpenGL's?"
+            )
 
 
 def _load_json(path: Path) -> dict:
