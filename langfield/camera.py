@@ -202,6 +202,14 @@ class Camera:
         safe = np.where(np.abs(z) < 1e-12, 1e-12, z)
         return np.stack([self.fx * p[..., 0] / safe + self.cx, self.fy * p[..., 1] / safe + self.cy], -1), z
 
+    def faces(self, box: np.ndarray) -> bool:
+        """Whether any of the axis-aligned ``box`` [2, 3] lies in front of the camera (the box is
+        convex: when all eight corners are behind, all of it is)."""
+        corners = np.array(
+            [[box[i][0], box[j][1], box[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+        )
+        return bool((self.project(corners)[1] > 0).any())
+
     def scaled(self, factor: float) -> Camera:
         """The same camera at an image `factor` times smaller (factor 2 halves width and height)."""
         if factor <= 0:

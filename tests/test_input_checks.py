@@ -521,3 +521,8 @@ def test_a_camera_facing_away_from_the_scene_box_exits_2_with_a_hint(scene_dir, 
         scene_dir, tmp_path / "good", lambda meta: meta.update(aabb=[[-0.3, -0.3, 0.3], [0.3, 0.3, 0.9]])
     )
     assert load_scene(good).names("train")  # the same box is in front of every camera
+
+
+def test_bounds_behind_every_training_view_exit_2_before_work(scene_dir, tmp_path, capsys, no_work) -> None:
+    line = run_error(train_argv(scene_dir, tmp_path / "out", "--bounds", "-0.1,-0.1,100,0.1,0.1,101"), capsys)
+    assert "--bounds" in line and "behind training view(s) train_000, train_001, train_002" in line

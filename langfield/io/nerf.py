@@ -56,13 +56,10 @@ def _json_layout(root: Path, source: Path, meta: dict, frames: list[Frame]) -> L
 
 
 def _check_facing(source: Path, frames: tuple[Frame, ...], aabb: np.ndarray) -> None:
-    """Refuses a frame whose camera sees none of the scene's box: the box is convex, so when all its
-    corners lie behind the camera it all does. Poses that are world-to-camera, or in OpenCV's axes,
-    usually fail this for most frames."""
-    corners = np.array([[aabb[i][0], aabb[j][1], aabb[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    """Refuses a frame whose camera sees none of the scene's box. Poses that are world-to-camera, or in
+    OpenCV's axes, usually fail this for most frames."""
     for frame in frames:
-        _, z = frame.camera.project(corners)
-        if (z <= 0).all():
+        if not frame.camera.faces(aabb):
             raise SceneError(
                 f"{source}: frame {frame.name!r}: the scene's aabb lies entirely behind the camera; are the "
                 "poses world-to-camera, or in OpenCV's axes (z forward) instead of camera-to-world OpenGL's?"

@@ -197,7 +197,9 @@ class Scene:
             return None
         inside = read_mask(path, "object mask", self._layout.frames[i].camera).astype(np.float32)
         if not inside.any():  # the masked scores would compare no pixel: a PSNR of inf
-            raise SceneError(f"{path}: the object mask is empty (no non-zero pixel); give the object's pixels")
+            raise SceneError(
+                f"{path}: the object mask is empty (no non-zero pixel); mark the object's pixels"
+            )
         return self._align(i, inside, cv2.INTER_AREA, cv2.BORDER_CONSTANT) >= 0.5
 
     def segmentations(self, name: str | int) -> dict[str, np.ndarray]:

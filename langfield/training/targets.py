@@ -25,7 +25,7 @@ from encoders.text_table import TableTextEncoder
 from langfield.camera import Camera
 from langfield.io.scene import Scene
 from langfield.model.language import N_LEVELS
-from langfield.training.config import TrainConfig
+from langfield.training.config import TrainConfig, flag_of
 from langfield.training.lad import LADTarget
 from langfield.training.regularisers import dark_backdrop
 
@@ -83,7 +83,12 @@ def check_inputs(scene: Scene, cfg: TrainConfig, progress: bool = True) -> None:
     train_names = scene.names("train")
     if not train_names:
         raise ValueError(f"{scene.root}: no training views; choose them with views= or n_views=")
-    scene_bounds(scene, cfg)
+    bounds = scene_bounds(scene, cfg)
+    behind = [c.name for c in scene.cameras("train") if not c.faces(bounds)]
+    if cfg.bounds is not None and behind:
+        raise ValueError(
+            f"{flag_of('bounds')}: the box lies entirely behind training view(s) {', '.join(behind)}"
+        )
     if scene.text_embeddings_path is not None:  # the field will answer queries with it: read it now
         TableTextEncoder(scene.text_embeddings_path)
     for name in tqdm(scene.names("all"), desc="check", disable=not progress, leave=False):
