@@ -46,6 +46,7 @@ from typing import Any
 from langfield.atomic import atomic_path, check_writable_file
 from langfield.eval.evaluate import evaluate
 from langfield.eval.geometry import count_floaters, depth_agreement, depth_errors
+from langfield.eval.view_classes import VIEW_CLASSES
 from langfield.field import check_output_folder
 from langfield.io.scene import Scene
 from langfield.training.config import TrainConfig
@@ -120,6 +121,7 @@ def run_case(
         "PSNR": report["PSNR"],
         "SSIM": report["SSIM"],
         "masked_PSNR": report.get("masked_PSNR"),
+        **class_psnr(report),
         "depth_abs_rel": None if depth is None else depth["abs_rel"],
         "floaters": None if floaters is None else floaters["floaters"],
         "depth_agreement": None if agreement is None else agreement["agreement"],
@@ -129,6 +131,14 @@ def run_case(
         "num_gaussians": field.num_gaussians,
         "lop_removed": field.meta.lop_removed,
     }
+
+
+def class_psnr(report: dict) -> dict[str, float | None]:
+    """``PSNR_near``, ``PSNR_between``, ``PSNR_beyond``: the mean PSNR of each view class
+    (:mod:`langfield.eval.view_classes`), masked where the scene has object masks (as its headline)."""
+    classes = report.get("by_view_class") or {}
+    key = "masked_PSNR" if report.get("masked_PSNR") is not None else "PSNR"
+    return {f"PSNR_{kind}": classes.get(kind, {}).get(key) for kind in VIEW_CLASSES}
 
 
 def run_ablation(

@@ -27,6 +27,7 @@ from encoders.protocols import LEVELS, TextEncoder
 from encoders.text_table import UnknownPhraseError
 from langfield.atomic import atomic_path, check_writable_file
 from langfield.eval.geometry import selection_scores
+from langfield.eval.view_classes import by_class, classify_views
 from langfield.field import LanguageField
 from langfield.io.scene import Scene
 from langfield.query import Query, fill_empty, make_query, text_encoder_for
@@ -92,6 +93,10 @@ def evaluate(
             sheet_labels += [f"{name} {record['PSNR']:.2f} dB", "depth", "ground truth"] if tiles else []
     if save is not None and views:
         write_contact_sheet(save / "views_sheet.png", sheet_tiles, sheet_labels, columns=3)
+    if views and scene.names("train"):
+        classes = classify_views(scene.cameras("train"), [scene.camera(n) for n in names])
+        for record in views:
+            record["view_class"] = classes[record["name"]]
     m = field.meta
     summary = summarize_queries(q for v in views for q in v["queries"].values())
     oracle_records = [q for v in views for q in v.get("oracle_queries", {}).values()]
@@ -116,6 +121,7 @@ def evaluate(
         "feature_cosine": _level_means(cosines),
         "oracle": _oracle_summary(summary, oracle_records) if oracle else None,
         "selection_3d": selection,
+        "by_view_class": by_class(views) if views and "view_class" in views[0] else None,
         "views": views,
     }
 
@@ -366,6 +372,17 @@ def write_render_pngs(folder: Path, name: str, rgb: np.ndarray, depth: np.ndarra
     cv2.imwrite(str(folder / f"{name}_depth.png"), depth_to_png(depth, alpha))
 
 
+def _class_lines(classes: dict | None) -> list[str]:
+    """The summary's table of PSNR per view class (near a training view, between them, beyond them)."""
+    if not classes:
+        return []
+    lines = ["| view class | views | PSNR | SSIM | masked PSNR |", "|---|---|---|---|---|"]
+    for kind, c in classes.items():
+        scores = f"{_fmt(c['PSNR'], 2)} | {_fmt(c['SSIM'])} | {_fmt(c['masked_PSNR'], 2)}"
+        lines.append(f"| {kind} | {c['views']} | {scores} |")
+    return lines + [""]
+
+
 def write_report(report: dict, json_path: str | Path, pictures: str | Path | None = None) -> Path:
     """Writes the JSON report and a Markdown summary beside it; returns the Markdown path."""
     json_path = check_writable_file(json_path, "report")
@@ -396,14 +413,16 @@ def write_report(report: dict, json_path: str | Path, pictures: str | Path | Non
         "",
     ]
     lines += _oracle_and_selection_lines(report)
+    lines += _class_lines(report.get("by_view_class"))
     lines += [
-        "| view | PSNR | SSIM | mIoU | mAcc |",
-        "|---|---|---|---|---|",
+        "| view | class | PSNR | SSIM | mIoU | mAcc |",
+        "|---|---|---|---|---|---|",
     ]
     for v in report["views"]:
         per_view = summarize_queries(v["queries"].values())
+        kind = v.get("view_class", {}).get("class", "n/a")
         lines.append(
-            f"| {v['name']} | {v['PSNR']:.2f} | {v['SSIM']:.3f} | "
+            f"| {v['name']} | {kind} | {v['PSNR']:.2f} | {v['SSIM']:.3f} | "
             f"{_fmt(per_view['mIoU'])} | {_fmt(per_view['mAcc'])} |"
         )
     lines += _phrase_table(report["views"])

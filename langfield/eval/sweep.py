@@ -59,9 +59,11 @@ else:  # pragma: no cover - Python 3.10
 SPEC_KEYS = {"scenes", "cases", "seeds", "cpus_per_run", "config", "scene_args", "custom"}
 SCENE_ARGS = {"resolution", "n_views", "views"}
 # The ablation table's columns, summarised over the seeds.
+# PSNR_near / _between / _beyond: per view class (langfield.eval.view_classes), masked where the scene
+# has masks.
 COLUMNS = (
-    "mIoU", "mAcc", "PSNR", "SSIM", "masked_PSNR", "depth_abs_rel", "floaters", "depth_agreement",
-    "num_gaussians", "train_seconds", "ms_per_iteration",
+    "mIoU", "mAcc", "PSNR", "SSIM", "masked_PSNR", "PSNR_near", "PSNR_between", "PSNR_beyond",
+    "depth_abs_rel", "floaters", "depth_agreement", "num_gaussians", "train_seconds", "ms_per_iteration",
 )  # fmt: skip
 
 
@@ -355,7 +357,7 @@ def format_summary(summary: dict, level: int = 1) -> str:
         lines += [f"{sub} {scene}", "", "| case | seeds | " + " | ".join(COLUMNS) + " |"]
         lines.append("|" + "---|" * (len(COLUMNS) + 2))
         for case, v in cases.items():
-            cells = [cell(v[c], digits.get(c, 2 if c in ("PSNR", "masked_PSNR") else 0)) for c in COLUMNS]
+            cells = [cell(v[c], digits.get(c, 2 if "PSNR" in c else 0)) for c in COLUMNS]
             lines.append(f"| {case} | {len(v['seeds'])} | " + " | ".join(cells) + " |")
         lines.append("")
     if summary["failed"]:

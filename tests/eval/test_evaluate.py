@@ -128,6 +128,13 @@ def test_report_json_and_markdown_show_the_queries(scene_dir, tmp_path) -> None:
     assert written["mIoU"] == 1.0 and written["views"][0]["queries"]["wall"] == {"iou": 1.0, "hit": True}
     text = md.read_text()
     assert "## Text queries" in text and "| sofa |" in text
+    # Each view is classed against the training views, and each class's scores are summarised.
+    classes = [v["view_class"]["class"] for v in written["views"]]
+    assert sum(c["views"] for c in written["by_view_class"].values()) == len(scene.names("test"))
+    for kind in set(classes):
+        psnrs = [v["PSNR"] for v in written["views"] if v["view_class"]["class"] == kind]
+        assert written["by_view_class"][kind]["PSNR"] == pytest.approx(sum(psnrs) / len(psnrs))
+        assert f"| {kind} | {classes.count(kind)} |" in text
     for name in scene.names("test"):
         sheet = cv2.imread(str(pics / f"{name}_queries.png"))
         assert sheet is not None and sheet.shape[0] > 2 * H, name
