@@ -79,24 +79,7 @@ def evaluate(
     query = _label_query(field, labels, text_encoder, scene)
     # Before any render: an object name the text encoder lacks stops the evaluation at once.
     selection = selection_scores(field, scene, text_encoder=text_encoder) if query is not None else None
-    views: list[dict[str, Any]] = []
-    cosines: list[list[float]] = []
-    sheet_tiles: list[np.ndarray] = []
-    sheet_labels: list[str] = []
-    with torch.no_grad():
-        for name in names:
-            record, cosine, tiles = _score_view(field, scene, name, labels.get(name), query, oracle, save)
-            views.append(record)
-            if cosine is not None:
-                cosines.append(cosine)
-            sheet_tiles += tiles
-            sheet_labels += [f"{name} {record['PSNR']:.2f} dB", "depth", "ground truth"] if tiles else []
-    if save is not None and views:
-        write_contact_sheet(save / "views_sheet.png", sheet_tiles, sheet_labels, columns=3)
-    if views and scene.names("train"):
-        classes = classify_views(scene.cameras("train"), [scene.camera(n) for n in names])
-        for record in views:
-            record["view_class"] = classes[record["name"]]
+    views, cosines = _score_views(field, scene, names, labels, query, oracle, save)
     m = field.meta
     summary = summarize_queries(q for v in views for q in v["queries"].values())
     oracle_records = [q for v in views for q in v.get("oracle_queries", {}).values()]
@@ -124,6 +107,38 @@ def evaluate(
         "by_view_class": by_class(views) if views and "view_class" in views[0] else None,
         "views": views,
     }
+
+
+def _score_views(
+    field: LanguageField,
+    scene: Scene,
+    names: list[str],
+    labels: dict,
+    query: Query | None,
+    oracle: bool,
+    save: Path | None,
+) -> tuple[list[dict[str, Any]], list[list[float]]]:
+    """Every view of :func:`evaluate`: the records, each with its view class, and the feature cosines;
+    with ``save``, the contact sheet of the renders."""
+    views: list[dict[str, Any]] = []
+    cosines: list[list[float]] = []
+    sheet_tiles: list[np.ndarray] = []
+    sheet_labels: list[str] = []
+    with torch.no_grad():
+        for name in names:
+            record, cosine, tiles = _score_view(field, scene, name, labels.get(name), query, oracle, save)
+            views.append(record)
+            if cosine is not None:
+                cosines.append(cosine)
+            sheet_tiles += tiles
+            sheet_labels += [f"{name} {record['PSNR']:.2f} dB", "depth", "ground truth"] if tiles else []
+    if save is not None and views:
+        write_contact_sheet(save / "views_sheet.png", sheet_tiles, sheet_labels, columns=3)
+    if views and scene.names("train"):
+        classes = classify_views(scene.cameras("train"), [scene.camera(n) for n in names])
+        for record in views:
+            record["view_class"] = classes[record["name"]]
+    return views, cosines
 
 
 def _score_view(

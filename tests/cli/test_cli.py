@@ -38,6 +38,7 @@ REPORT_KEYS = {
     "feature_cosine",
     "oracle",
     "selection_3d",
+    "by_view_class",
     "views",
 }
 
