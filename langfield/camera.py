@@ -26,6 +26,11 @@ FOCAL_RANGE = (0.05, 100.0)
 MAX_ASPECT = 4.0
 
 
+def box_corners(box: np.ndarray) -> np.ndarray:
+    """[8, 3] the corners of the axis-aligned box [[xmin, ymin, zmin], [xmax, ymax, zmax]]."""
+    return np.array([[box[i][0], box[j][1], box[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
 def _check_pose(name: str, c2w: np.ndarray) -> None:
     """Refuses a camera-to-world matrix that is not a rigid motion, with a hint at what it looks like."""
     if np.abs(c2w[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
@@ -205,10 +210,7 @@ class Camera:
     def faces(self, box: np.ndarray) -> bool:
         """Whether any of the axis-aligned ``box`` [2, 3] lies in front of the camera (the box is
         convex: when all eight corners are behind, all of it is)."""
-        corners = np.array(
-            [[box[i][0], box[j][1], box[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-        )
-        return bool((self.project(corners)[1] > 0).any())
+        return bool((self.project(box_corners(box))[1] > 0).any())
 
     def scaled(self, factor: float) -> Camera:
         """The same camera at an image `factor` times smaller (factor 2 halves width and height)."""

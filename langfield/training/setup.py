@@ -29,7 +29,7 @@ from langfield.raster import resolve_backend
 from langfield.training.config import TrainConfig, flag_of
 from langfield.training.lad import LADTarget
 from langfield.training.start import StartPoints, start_points
-from langfield.training.strategy import TrainingStrategy, stereo_surfaces
+from langfield.training.strategy import TrainingStrategy, field_extent, stereo_surfaces
 from langfield.training.targets import (
     LanguageTargets,
     ViewTargets,
@@ -278,8 +278,7 @@ def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:
     field = build_field(scene, cfg, targets, start)
     field.meta["depth"] = None if depth_in is None else {"lad": cfg.lad, "kind": scene.depth_kind}
     field.meta["training_length"] = length
-    bounds = field.meta.bounds
-    optimizers = make_optimizers(field, float(np.linalg.norm(bounds[1] - bounds[0]) / 2), cfg)
+    optimizers = make_optimizers(field, field_extent(field), cfg)
     stereo = stereo_surfaces(scene.cameras("train"), start) if cfg.carve_free_space else []
     strategy = TrainingStrategy(cfg, field, optimizers, targets, stereo)
     cameras = {name: scene.camera(name) for name in train_names}

@@ -69,7 +69,7 @@ class TrainingStrategy:
             prune_scale3d=None,
         )
         self.state = self.densify.initialize_state(field.splats)
-        self.extent = _extent(field)
+        self.extent = field_extent(field)
         self.use_lop = cfg.lop and targets is not None and cfg.lop_every > 0
         self.carved: list[dict[str, int]] = []
         self.lop_rounds: list[dict[str, Any]] = []
@@ -157,7 +157,7 @@ def carve_free_space(
     return removed
 
 
-def _extent(field: LanguageField) -> float:
+def field_extent(field: LanguageField) -> float:
     """Half the diagonal of the field's bounds: densification's scene scale."""
     bounds = field.meta.bounds
     return float(np.linalg.norm(bounds[1] - bounds[0]) / 2)

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import torch
 
-from langfield.camera import Camera
+from langfield.camera import Camera, box_corners
 from langfield.training.start.matching import box_mean, gray, window_stats, zncc
 
 __all__ = ["PlaneSweepConfig", "dense_points", "depth_range", "plane_sweep", "stereo_depths"]
@@ -50,10 +50,7 @@ class PlaneSweepConfig:
 
 def depth_range(cam: Camera, bounds: np.ndarray) -> tuple[float, float]:
     """(near, far) z-depths of the box ``bounds`` [2, 3] seen from ``cam`` (near kept positive)."""
-    corners = np.array(
-        [[bounds[i][0], bounds[j][1], bounds[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-    )
-    _, z = cam.project(corners)
+    _, z = cam.project(box_corners(bounds))
     far = float(z.max())
     if far <= 0:
         raise ValueError(f"camera {cam.name!r}: the scene bounds lie behind it")
