@@ -22,6 +22,9 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
   ``no-random-background``: the scene's own background colour in every iteration;
   ``no-empty-space``: no use of the empty space the photos show (alpha, a black backdrop);
   ``no-opacity-decay``: without Binocular-guided 3DGS's opacity decay;
+- ``opacity-noise`` (off by default): Co-Adaptation's opacity noise at s = 0.2;
+- ``orbit``, ``orbit-wide``: the virtual camera orbits the rendered depth instead of shifting, at the
+  default baseline and at 0.3 (views beyond the training cameras);
 - ``anisotropy``, ``smooth`` (off by default, measured without effect): with the anisotropy penalty,
   with edge-aware depth smoothness.
 
@@ -66,6 +69,9 @@ CASES: dict[str, dict[str, Any]] = {
     "sfm-init": {"init": "sfm"},
     "depth-init": {"init": "depth"},
     "no-dropout": {"drop_gamma": 0.0},
+    "opacity-noise": {"opacity_noise": 0.2},
+    "orbit": {"virtual_motion": "orbit"},
+    "orbit-wide": {"virtual_motion": "orbit", "virtual_baseline": 0.3},
     "no-virtual": {"lambda_virtual": 0.0},
     "no-random-background": {"random_background": False},
     "no-empty-space": {"dark_backdrop": False, "lambda_empty": 0.0},

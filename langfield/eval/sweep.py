@@ -32,6 +32,7 @@ part of, ``ray://host:10001`` a remote one (docs/cluster.md).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -229,6 +230,16 @@ def _as_json(value: Any) -> Any:
     return json.loads(json.dumps(value, default=float))
 
 
+def _same_config(recorded: Any, config: dict[str, Any]) -> bool:
+    """Whether a run file's recorded settings are ``config``: a setting added since the run was written
+    is absent from its record and matches at its default (a new setting's default keeps the behaviour
+    it did not have before); a setting removed since never matches."""
+    if not isinstance(recorded, dict) or not set(recorded) <= set(config):
+        return False
+    defaults = _as_json(dataclasses.asdict(TrainConfig()))
+    return all(recorded.get(k, defaults[k]) == v for k, v in config.items())
+
+
 def finished_runs(spec: Spec, out: Path) -> dict[str, dict]:
     """The spec's runs already written in ``out`` (failed ones left out: they run again).
 
@@ -242,8 +253,8 @@ def finished_runs(spec: Spec, out: Path) -> dict[str, dict]:
         if not path.is_file():
             continue
         result = json.loads(path.read_text())
-        settings = {"config": _as_json(run.config), "scene_args": _as_json(run.scene_args)}
-        if {k: result.get(k) for k in settings} != settings:
+        same_scene = result.get("scene_args") == _as_json(run.scene_args)
+        if not (same_scene and _same_config(result.get("config"), _as_json(run.config))):
             raise SpecError(f"{path}: was run with other settings than {spec.path} gives; use another --out")
         if "row" in result:
             done[run.key] = result

@@ -253,6 +253,12 @@ class TrainConfig:
         check=Number(0.0, 0.9),
         flag="--drop-gamma",
     )
+    opacity_noise: float = in_sparse_view(
+        0.0,
+        "opacity noise: each opacity times 1 + e, e ~ N(0, s^2) clipped to +-s (Co-Adaptation; 0: off)",
+        check=Number(0.0, 0.9),
+        flag="--opacity-noise",
+    )
     lambda_virtual: float = in_sparse_view(
         1.0,
         "weight of the virtual-view consistency term (Binocular-guided 3DGS; 0: off)",
@@ -272,6 +278,12 @@ class TrainConfig:
         "virtual cameras shifted left or right (a stereo pair), or in any direction of the image plane",
         check=OneOf(("horizontal", "any")),
         flag="--virtual-directions",
+    )
+    virtual_motion: str = in_sparse_view(
+        "shift",
+        "the virtual camera shifted parallel to its image plane, or orbiting the median depth ahead of it",
+        check=OneOf(("shift", "orbit")),
+        flag="--virtual-motion",
     )
     virtual_start: int = in_sparse_view(0, "first iteration of the virtual-view term", check=Whole(0))
     # It renders a second view; every second iteration fits fern better than every one.

@@ -26,7 +26,7 @@ from langfield.io.scene import Scene
 from langfield.training.aggregate import register_entries
 from langfield.training.config import TrainConfig
 from langfield.training.losses import StepRender, loss_terms
-from langfield.training.regularisers import drop_compensation
+from langfield.training.regularisers import drop_compensation, opacity_noise
 from langfield.training.setup import Run, prepare
 from langfield.training.targets import LanguageTargets, backdrop_target
 from querying.metrics import psnr
@@ -118,8 +118,8 @@ def _finish(run: Run, train_seconds: float, log: LossLog) -> None:
 
 
 def render_step(run: Run, step: int, name: str) -> StepRender:
-    """Renders training view ``name`` at ``step`` (at half size in the coarse start), with dropout and a
-    random background; sets the position learning rate for the step."""
+    """Renders training view ``name`` at ``step`` (at half size in the coarse start), with dropout, opacity
+    noise and a random background; sets the position learning rate for the step."""
     cfg, field = run.cfg, run.field
     view = run.half_views[name] if step < run.half_steps else run.views[name]
     # 3DGS's exponential decay of the position learning rate to 1 % over the run.
@@ -129,6 +129,9 @@ def render_step(run: Run, step: int, name: str) -> StepRender:
     if cfg.drop_gamma > 0:
         rate = cfg.drop_gamma * step / max(cfg.iterations, 1)
         keep = drop_compensation(field.num_gaussians, rate, run.drop_generator)
+    if cfg.opacity_noise > 0:
+        noise = opacity_noise(field.num_gaussians, cfg.opacity_noise, run.drop_generator)
+        keep = noise if keep is None else keep * noise
     behind = None
     if cfg.random_background and run.scene.background is None:
         behind = torch.rand(3, generator=run.drop_generator)

@@ -27,6 +27,8 @@ from langfield.training.regularisers import (
     depth_smoothness,
     depth_spread_loss,
     free_space_violation,
+    orbit_camera,
+    reprojection_warp,
     shifted_camera,
     virtual_shift,
     virtual_view_warp,
@@ -147,7 +149,9 @@ def virtual_view_loss(
     grid: GridFeatures | None = None,
 ) -> Tensor:
     """Binocular consistency (Han et al. 2024): the training view's depth must warp a sideways-shifted
-    render onto the training image. L1 + D-SSIM over the pixels the field covers and the warp reaches."""
+    render onto the training image. L1 + D-SSIM over the pixels the field covers and the warp reaches.
+    With ``virtual_motion="orbit"`` the virtual camera turns about the median depth instead and the
+    pixels it sees occluded are left out."""
     covered = out.alpha.detach() > 0.5
     depth = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
     right, up = virtual_shift(
@@ -159,10 +163,19 @@ def virtual_view_loss(
         cam = cam.scaled(1.0 / cfg.virtual_resolution)
         depth, image, cover = area_resize([depth[..., None], image, covered[..., None].float()], cam)
         depth, covered = depth[..., 0], cover[..., 0] > 0.5
-    shifted = field.render(
-        shifted_camera(cam, right, up), backend=cfg.backend, language=False, opacity_scale=keep, grid=grid
-    )
-    warped, valid = virtual_view_warp(shifted.rgb, depth, cam, right, up)
+    if not bool(covered.any()):
+        return out.rgb.sum() * 0.0
+    if cfg.virtual_motion == "orbit":
+        pivot = float(depth.detach()[covered].median())
+        virtual = orbit_camera(cam, right, up, pivot)
+        seen = field.render(virtual, backend=cfg.backend, language=False, opacity_scale=keep, grid=grid)
+        seen_depth = z_depth(seen.depth / seen.alpha.clamp_min(1e-4), virtual)
+        warped, valid = reprojection_warp(seen.rgb, depth, cam, virtual, seen_depth.detach())
+    else:
+        shifted = field.render(
+            shifted_camera(cam, right, up), backend=cfg.backend, language=False, opacity_scale=keep, grid=grid
+        )
+        warped, valid = virtual_view_warp(shifted.rgb, depth, cam, right, up)
     mask = (valid & covered).float()
     if float(mask.sum()) < 1:
         return out.rgb.sum() * 0.0

@@ -11,6 +11,9 @@
   the training image (L1 + D-SSIM). A wrong depth warps the wrong pixels, so the loss corrects the
   geometry between the views from the photos alone. Optionally the shift takes any direction in the
   image plane: object scans whose test views also differ in elevation need vertical parallax too.
+  Or the camera orbits: it turns about the point at the median rendered depth ahead of it, so that it
+  keeps the scene in view while it moves (the way DTU's and Blender's test views stand around an
+  object), and the warp is a general reprojection that drops the pixels the virtual view sees occluded.
 - Edge-aware depth smoothness (Godard et al., CVPR 2017, eq. 3, as monocular depth training uses it):
   the rendered depth, divided by its mean so the term does not depend on the scene's scale, should
   change little where the image does not; textureless surfaces (a white table) then take their depth
@@ -50,6 +53,9 @@ __all__ = [
     "dark_backdrop",
     "depth_smoothness",
     "drop_compensation",
+    "opacity_noise",
+    "orbit_camera",
+    "reprojection_warp",
     "shifted_camera",
     "virtual_shift",
     "virtual_view_warp",
@@ -104,11 +110,96 @@ def drop_compensation(n: int, rate: float, generator: torch.Generator) -> Tensor
     return keep.float() / (1.0 - rate)
 
 
+def opacity_noise(n: int, sigma: float, generator: torch.Generator) -> Tensor:
+    """[n] opacity factors ``1 + e``, ``e ~ N(0, sigma^2)`` clipped to [-sigma, sigma]: the opacity noise
+    of Chen et al. (NeurIPS 2025, arXiv:2508.12720), which keeps Gaussians from fitting the training
+    views only together (co-adaptation). Drawn per Gaussian and iteration; the factors lie in
+    [1 - sigma, 1 + sigma].
+
+    Args:
+        n: number of Gaussians.
+        sigma: the noise's standard deviation, in [0, 1).
+        generator: the random stream (seeded by the trainer).
+    """
+    if not 0.0 <= sigma < 1.0:
+        raise ValueError(f"opacity noise must be in [0, 1), got {sigma}")
+    noise = torch.randn(n, generator=generator) * sigma
+    return 1.0 + noise.clamp(-sigma, sigma)
+
+
 def shifted_camera(cam: Camera, right: float, up: float = 0.0) -> Camera:
     """The camera moved by ``right`` along its own x axis and ``up`` along its own y axis (OpenGL: up)."""
     c2w = cam.c2w.copy()
     c2w[:3, 3] = c2w[:3, 3] + right * c2w[:3, 0] + up * c2w[:3, 1]
     return replace(cam, name=f"{cam.name}+{right:.3g},{up:.3g}", c2w=c2w)
+
+
+def orbit_camera(cam: Camera, right: float, up: float, pivot: float) -> Camera:
+    """The camera turned about the point ``pivot`` ahead of it on its axis, by the angle
+    ``hypot(right, up) / pivot``, towards its own x axis by ``right`` and y axis (OpenGL: up) by ``up``:
+    for a small angle the centre moves as :func:`shifted_camera` moves it, and the pivot stays in
+    the centre of the image."""
+    length = math.hypot(right, up)
+    if length == 0.0 or pivot <= 0.0:
+        return replace(cam, name=f"{cam.name}~0")
+    rotation, centre = cam.c2w[:3, :3], cam.c2w[:3, 3]
+    forward = -rotation[:, 2]
+    direction = (right * rotation[:, 0] + up * rotation[:, 1]) / length
+    axis = np.cross(direction, forward)  # unit: direction is orthogonal to forward
+    turn = _rotation(axis, length / pivot)
+    target = centre + pivot * forward
+    c2w = cam.c2w.copy()
+    c2w[:3, :3] = turn @ rotation
+    c2w[:3, 3] = target + turn @ (centre - target)
+    return replace(cam, name=f"{cam.name}~{right:.3g},{up:.3g}", c2w=c2w)
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """[3, 3] rotation by ``angle`` (radians) about the unit ``axis`` (Rodrigues' formula)."""
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+def reprojection_warp(
+    other_image: Tensor,
+    depth_z: Tensor,
+    cam: Camera,
+    other: Camera,
+    other_depth: Tensor | None = None,
+    tolerance: float = 0.05,
+) -> tuple[Tensor, Tensor]:
+    """Warps ``other``'s image onto ``cam`` through ``cam``'s z-depth: each pixel's surface point is
+    projected into ``other`` and its image sampled there (bilinear, differentiable in the image and
+    the depth). For a camera moved parallel to its image plane this is :func:`virtual_view_warp`.
+
+    Args:
+        other_image: [h, w, C] the image of ``other``.
+        depth_z: [H, W] ``cam``'s z-depth (> 0 where valid).
+        cam, other: the two cameras.
+        other_depth: [h, w] ``other``'s own z-depth, if known: a point that lies more than
+            ``tolerance`` (relative) behind it is hidden from ``other`` and left out.
+
+    Returns:
+        ``(warped [H, W, C], valid [H, W] bool)``: valid where the depth is positive, the point lies in
+        front of ``other``, projects inside its image and (given ``other_depth``) is not hidden.
+    """
+    positive = depth_z > 1e-6
+    safe = torch.where(positive, depth_z, torch.ones_like(depth_z))
+    uv, z = other.project(cam.unproject(safe))
+    h, w = other_image.shape[:2]
+    u, v = uv[..., 0], uv[..., 1]
+    grid = torch.stack([2.0 * u / w - 1.0, 2.0 * v / h - 1.0], dim=-1)[None]
+    image = other_image.permute(2, 0, 1)[None]
+    warped = torch.nn.functional.grid_sample(
+        image, grid, mode="bilinear", padding_mode="border", align_corners=False
+    )
+    valid = positive & (z > 1e-6) & (u >= 0.5) & (u <= w - 0.5) & (v >= 0.5) & (v <= h - 0.5)
+    if other_depth is not None:
+        col = u.detach().floor().long().clamp(0, w - 1)
+        row = v.detach().floor().long().clamp(0, h - 1)
+        seen = other_depth.detach()[row, col]
+        valid = valid & ((seen <= 1e-6) | (z.detach() <= seen * (1.0 + tolerance)))
+    return warped[0].permute(1, 2, 0), valid
 
 
 def z_depth(distance: Tensor, cam: Camera) -> Tensor:

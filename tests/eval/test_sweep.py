@@ -89,6 +89,21 @@ def test_sweep_tabulates_reports_a_failure_and_resumes(spec_file, tmp_path, monk
     assert _files(out) == after
 
 
+def test_a_run_file_from_before_a_setting_was_added_matches_at_its_default() -> None:
+    import dataclasses
+
+    from langfield.eval.sweep import _as_json, _same_config
+    from langfield.training.config import TrainConfig
+
+    config = _as_json(dataclasses.asdict(TrainConfig(lambda_depth=0.02)))
+    older = {k: v for k, v in config.items() if k != "opacity_noise"}  # written before the setting
+    assert _same_config(older, config)
+    assert not _same_config(older, {**config, "opacity_noise": 0.1})  # the run had none
+    assert not _same_config({**config, "lambda_depth": 0.01}, config)
+    assert not _same_config({**config, "a_removed_setting": 1}, config)
+    assert not _same_config(None, config)
+
+
 @pytest.mark.slow
 def test_killed_sweep_resumes_without_redoing_finished_runs(spec_file, tmp_path) -> None:
     out = tmp_path / "out"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -17,6 +18,9 @@ from langfield.training.regularisers import (
     depth_smoothness,
     depth_spread_loss,
     drop_compensation,
+    opacity_noise,
+    orbit_camera,
+    reprojection_warp,
     shifted_camera,
     virtual_shift,
     virtual_view_warp,
@@ -33,6 +37,20 @@ def test_dropout_drops_the_rate_and_keeps_the_expected_opacity() -> None:
     assert torch.equal(drop_compensation(10, 0.0, g), torch.ones(10))
     with pytest.raises(ValueError, match="drop rate"):
         drop_compensation(10, 1.0, g)
+
+
+def test_opacity_noise_is_clipped_gaussian_around_one() -> None:
+    g = torch.Generator().manual_seed(0)
+    factors = opacity_noise(100_000, 0.2, g)
+    spread = (factors - 1.0).abs()
+    assert float(spread.max()) <= 0.2 + 1e-6
+    assert factors.mean() == pytest.approx(1.0, abs=0.005)
+    # N(0, 0.2^2) clipped at one sigma: about 32 % of the draws sit on the bounds.
+    on_bounds = (spread >= 0.2 - 1e-6).float().mean()
+    assert on_bounds == pytest.approx(0.317, abs=0.01)
+    assert torch.equal(opacity_noise(10, 0.0, g), torch.ones(10))
+    with pytest.raises(ValueError, match="opacity noise"):
+        opacity_noise(10, 1.0, g)
 
 
 def test_shifted_camera_moves_along_its_own_x_and_y_axes() -> None:
@@ -128,6 +146,53 @@ def test_the_warp_passes_gradient_to_the_depth() -> None:
     assert depth.grad is not None and depth.grad.abs().sum() > 0
 
 
+def test_the_reprojection_warp_of_a_shifted_camera_is_the_binocular_warp() -> None:
+    """The general warp against the closed-form one (values and the depth's gradient)."""
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=40, height=30)
+    rng = torch.Generator().manual_seed(0)
+    other_image = torch.rand(30, 40, 3, generator=rng)
+    base = 2.0 + 0.5 * torch.rand(30, 40, generator=rng)
+    right, up = 0.07, -0.05
+    depth_a = base.clone().requires_grad_(True)
+    depth_b = base.clone().requires_grad_(True)
+    expected, expected_valid = virtual_view_warp(other_image, depth_a, cam, right, up)
+    warped, valid = reprojection_warp(other_image, depth_b, cam, shifted_camera(cam, right, up))
+    assert torch.equal(valid, expected_valid) and valid.sum() > 0.7 * valid.numel()
+    torch.testing.assert_close(warped, expected, atol=1e-5, rtol=0)
+    weights = torch.rand(30, 40, 3, generator=rng)
+    (expected * weights)[expected_valid].sum().backward()
+    (warped * weights)[valid].sum().backward()
+    torch.testing.assert_close(depth_b.grad, depth_a.grad, atol=1e-4, rtol=1e-3)
+
+
+def test_the_reprojection_warp_leaves_out_what_the_other_view_sees_occluded() -> None:
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=16, height=12)
+    other = shifted_camera(cam, 0.05)
+    image = torch.rand(12, 16, 3)
+    depth = torch.full((12, 16), 2.0)
+    _, free = reprojection_warp(image, depth, cam, other, torch.full((12, 16), 2.0))
+    _, hidden = reprojection_warp(image, depth, cam, other, torch.full((12, 16), 1.5))
+    _, empty = reprojection_warp(image, depth, cam, other, torch.zeros(12, 16))
+    assert free.sum() > 0.7 * free.numel() and not hidden.any() and torch.equal(empty, free)
+
+
+def test_an_orbiting_camera_keeps_its_pivot_in_the_image_centre() -> None:
+    cam = Camera.look_at((0.3, -2.0, 0.5), (0.0, 0.0, 0.2), width=40, height=30)
+    pivot = 1.5
+    target = cam.center + pivot * cam.forward
+    for right, up in ((0.4, 0.0), (0.0, -0.3), (0.2, 0.25)):
+        turned = orbit_camera(cam, right, up, pivot)
+        uv, z = turned.project(target[None])
+        np.testing.assert_allclose(uv[0], (cam.cx, cam.cy), atol=1e-9)
+        assert z[0] == pytest.approx(pivot)
+        # The angle is the arc length over the radius; a small one moves the centre as the shift does.
+        cosine = np.dot(cam.center - target, turned.center - target) / pivot**2
+        assert math.acos(np.clip(cosine, -1, 1)) == pytest.approx(math.hypot(right, up) / pivot)
+    small = orbit_camera(cam, 1e-4, -2e-4, pivot)
+    np.testing.assert_allclose(small.center, shifted_camera(cam, 1e-4, -2e-4).center, atol=1e-7)
+    assert np.array_equal(orbit_camera(cam, 0.0, 0.0, pivot).c2w, cam.c2w)
+
+
 def test_anisotropy_penalises_needles_only() -> None:
     iso = torch.zeros(5, 3)
     needle = torch.log(torch.tensor([[1.0, 0.01, 0.01]])).requires_grad_(True)
@@ -197,7 +262,8 @@ def scene(room_factory):
 @pytest.mark.slow
 def test_training_with_every_regulariser_runs_each_term_and_records_it(scene) -> None:
     more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1, "lambda_spread": 1.0,
-            "lambda_visibility": 1.0, "spread_start": 0.0, "virtual_every": 2}  # fmt: skip
+            "lambda_visibility": 1.0, "spread_start": 0.0, "virtual_every": 2, "opacity_noise": 0.1,
+            "virtual_motion": "orbit"}  # fmt: skip
     cfg = lf.TrainConfig(iterations=6, num_gaussians=300, init="random", drop_gamma=0.2, **more)
     field = lf.train(scene, cfg, progress=False)
     assert all(torch.isfinite(p).all() for p in field.splats.values())
@@ -238,6 +304,10 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
         "0.1",
         "--lambda-spread",
         "0.05",
+        "--opacity-noise",
+        "0.1",
+        "--virtual-motion",
+        "orbit",
     ]
     argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
     assert main([*argv, "--init", "random", *flags]) == 0
@@ -246,7 +316,7 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
     expected.update(random_background=False, lambda_smooth=0.01, lambda_anisotropy=0.02)
     expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99, virtual_every=3)
     expected.update(virtual_resolution=0.5, half_resolution_until=0.5, lambda_visibility=0.1)
-    expected.update(lambda_spread=0.05)
+    expected.update(lambda_spread=0.05, opacity_noise=0.1, virtual_motion="orbit")
     assert {k: recorded[k] for k in expected} == expected
     assert main([*argv, "--force", "--random-background"]) == 0
     assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
@@ -300,6 +370,26 @@ def test_virtual_term_at_a_lower_resolution_renders_the_shifted_view_smaller(sce
     assert sizes == [(48, 36), (24, 18)] * 3
     assert field.meta["config"]["virtual_resolution"] == 0.5
     assert all(torch.isfinite(p).all() for p in field.splats.values())
+
+
+def test_the_orbiting_virtual_view_turns_about_the_rendered_depth(scene, monkeypatch) -> None:
+    from langfield.training import losses
+
+    turned = []
+
+    def spy(cam, right, up, pivot):
+        turned.append((cam, pivot, losses.shifted_camera(cam, right, up).center))
+        return orbit_camera(cam, right, up, pivot)
+
+    monkeypatch.setattr(losses, "orbit_camera", spy)
+    cfg = lf.TrainConfig(iterations=4, num_gaussians=300, init="random", language=False, depth=False,
+                         virtual_motion="orbit", virtual_every=1, half_resolution_until=0.0)  # fmt: skip
+    field = lf.train(scene, cfg, progress=False)
+    assert len(turned) == 4 and all(torch.isfinite(p).all() for p in field.splats.values())
+    # Each pivot is a depth inside the room, and each turn moves the camera.
+    for cam, pivot, shifted_centre in turned:
+        assert 0.1 < pivot < 20.0
+        assert np.linalg.norm(shifted_centre - cam.center) > 0
 
 
 def test_area_resize_averages_blocks_and_passes_gradient() -> None:
