@@ -2,7 +2,10 @@
 
 A hash grid encodes each Gaussian's centre, a frequency encoding its view direction, and a small ReLU MLP
 maps both to RGB. DNGaussian's neural renderer is the template (hash grid 16 x 2, colour MLP of 64 units,
-grid lr 5e-3, MLP lr 5e-4); the direction encoding is NeRF's, with 4 frequencies for directions.
+grid lr 5e-3, MLP lr 5e-4); the direction encoding is NeRF's, whose 4 frequencies for directions the
+trainer leaves out by default (``TrainConfig.color_freqs = 0``: the direction itself, a colour that
+varies smoothly with it): three views give each point three directions, and the frequencies fit them
+at the cost of the directions between and beyond (docs/decisions.md).
 """
 
 from __future__ import annotations

@@ -142,7 +142,13 @@ class TrainConfig:
         check=Whole(8, 30, optional=True),
     )
     color_hidden: int = in_model(64, "hidden width of the colour MLP", check=Whole(1))
-    color_freqs: int = in_model(4, "view-direction frequencies of the colour MLP", check=Whole(0))
+    # Three views show each point from three directions: frequencies fit them and extrapolate badly.
+    color_freqs: int = in_model(
+        0,
+        "view-direction frequencies of the colour MLP (0: the direction alone, NeRF: 4)",
+        check=Whole(0),
+        flag="--color-freqs",
+    )
     language: bool | None = in_model(
         None,
         "train the language field (default: when every training view has a feature cache)",
