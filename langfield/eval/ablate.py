@@ -25,6 +25,8 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
 - ``opacity-noise`` (off by default): Co-Adaptation's opacity noise at s = 0.2;
 - ``orbit``, ``orbit-wide``: the virtual camera orbits the rendered depth instead of shifting, at the
   default baseline and at 0.3 (views beyond the training cameras);
+- ``direction-frequencies``: the colour MLP with NeRF's 4 frequencies of the view direction (the
+  default takes the direction alone);
 - ``anisotropy``, ``smooth`` (off by default, measured without effect): with the anisotropy penalty,
   with edge-aware depth smoothness.
 
@@ -72,6 +74,7 @@ CASES: dict[str, dict[str, Any]] = {
     "opacity-noise": {"opacity_noise": 0.2},
     "orbit": {"virtual_motion": "orbit"},
     "orbit-wide": {"virtual_motion": "orbit", "virtual_baseline": 0.3},
+    "direction-frequencies": {"color_freqs": 4},
     "no-virtual": {"lambda_virtual": 0.0},
     "no-random-background": {"random_background": False},
     "no-empty-space": {"dark_backdrop": False, "lambda_empty": 0.0},
