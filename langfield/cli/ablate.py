@@ -38,7 +38,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, paper-language, "
         "baseline, no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, no-virtual, "
         "no-random-background, no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, "
-        "full-resolution, virtual-every-step, half-size-virtual (default: full, no-lop, no-lad, "
+        "full-resolution, virtual-every-step, half-size-virtual, opacity-noise, orbit, orbit-wide, "
+        "direction-frequencies (default: full, no-lop, no-lad, "
         "no-depth, per-gaussian, paper-language, random-init, no-dropout, no-virtual, "
         "no-random-background, no-empty-space, no-opacity-decay; those a scene cannot use skipped)",
     )
