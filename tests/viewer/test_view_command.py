@@ -17,7 +17,12 @@ from langfield.cli import main
 def test_view_serves_the_page_and_stops_on_ctrl_c(viewer_field_dir) -> None:
     run = "import sys; from langfield.cli import main; sys.exit(main())"
     argv = [sys.executable, "-u", "-c", run, "view", str(viewer_field_dir), "--port", "0"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # Ctrl-C as in a terminal: a suite started as a background job (`cmd &` in a script) inherits an
+    # ignored SIGINT, and a Python started with SIGINT ignored never raises KeyboardInterrupt.
+    terminal = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=terminal
+    )
     try:
         lines = []
         for line in proc.stdout:
