@@ -170,7 +170,7 @@ def virtual_view_loss(
         virtual = orbit_camera(cam, right, up, pivot)
         seen = field.render(virtual, backend=cfg.backend, language=False, opacity_scale=keep, grid=grid)
         seen_depth = z_depth(seen.depth / seen.alpha.clamp_min(1e-4), virtual)
-        warped, valid = reprojection_warp(seen.rgb, depth, cam, virtual, seen_depth.detach())
+        warped, valid = reprojection_warp(seen.rgb, depth, cam, virtual, seen_depth)
     else:
         shifted = field.render(
             shifted_camera(cam, right, up), backend=cfg.backend, language=False, opacity_scale=keep, grid=grid

@@ -186,20 +186,16 @@ def reprojection_warp(
     positive = depth_z > 1e-6
     safe = torch.where(positive, depth_z, torch.ones_like(depth_z))
     uv, z = other.project(cam.unproject(safe))
-    h, w = other_image.shape[:2]
     u, v = uv[..., 0], uv[..., 1]
-    grid = torch.stack([2.0 * u / w - 1.0, 2.0 * v / h - 1.0], dim=-1)[None]
-    image = other_image.permute(2, 0, 1)[None]
-    warped = torch.nn.functional.grid_sample(
-        image, grid, mode="bilinear", padding_mode="border", align_corners=False
-    )
-    valid = positive & (z > 1e-6) & (u >= 0.5) & (u <= w - 0.5) & (v >= 0.5) & (v <= h - 0.5)
+    warped, inside = _sample_at(other_image, u, v)
+    valid = positive & (z > 1e-6) & inside
     if other_depth is not None:
+        h, w = other_image.shape[:2]
         col = u.detach().floor().long().clamp(0, w - 1)
         row = v.detach().floor().long().clamp(0, h - 1)
         seen = other_depth.detach()[row, col]
         valid = valid & ((seen <= 1e-6) | (z.detach() <= seen * (1.0 + tolerance)))
-    return warped[0].permute(1, 2, 0), valid
+    return warped, valid
 
 
 def z_depth(distance: Tensor, cam: Camera) -> Tensor:
@@ -237,13 +233,21 @@ def virtual_view_warp(
     inverse = 1.0 / torch.where(positive, depth_z, torch.ones_like(depth_z))
     source_u = u - cam.fx * right * inverse
     source_v = v + cam.fy * up * inverse
-    grid = torch.stack([2.0 * source_u / w - 1.0, 2.0 * source_v / h - 1.0], dim=-1)[None]
-    image = shifted_image.permute(2, 0, 1)[None]
-    warped = torch.nn.functional.grid_sample(
-        image, grid, mode="bilinear", padding_mode="border", align_corners=False
+    warped, inside = _sample_at(shifted_image, source_u, source_v)
+    return warped, positive & inside
+
+
+def _sample_at(image: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """``image`` [h, w, C] sampled bilinearly at pixel coordinates ``u``, ``v`` [H, W] (pixel centres at
+    + 0.5; differentiable in the image and the coordinates): ``(samples [H, W, C], inside [H, W])``,
+    inside where the coordinates lie between the outer pixel centres."""
+    h, w = image.shape[:2]
+    grid = torch.stack([2.0 * u / w - 1.0, 2.0 * v / h - 1.0], dim=-1)[None]
+    sampled = torch.nn.functional.grid_sample(
+        image.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border", align_corners=False
     )
-    inside = (source_u >= 0.5) & (source_u <= w - 0.5) & (source_v >= 0.5) & (source_v <= h - 0.5)
-    return warped[0].permute(1, 2, 0), positive & inside
+    inside = (u >= 0.5) & (u <= w - 0.5) & (v >= 0.5) & (v <= h - 0.5)
+    return sampled[0].permute(1, 2, 0), inside
 
 
 def free_space_violation(
