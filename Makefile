@@ -17,8 +17,8 @@ $(BIN)/python:
 # torch goes in first and pinned: an unpinned torch pulls a CUDA build of several GB. The kernels are
 # compiled here, once, so that the first `langfield train` does not stop for them.
 $(VENV)/.installed: $(BIN)/python pyproject.toml $(LOCK)
-	$(BIN)/pip install -c $(LOCK) "$(TORCH)"
-	$(BIN)/pip install -c $(LOCK) -e ".[test,cluster]"
+	$(BIN)/pip install --no-cache-dir -c $(LOCK) "$(TORCH)"
+	$(BIN)/pip install --no-cache-dir -c $(LOCK) -e ".[test,cluster]"
 	$(BIN)/python -c "from langfield.cli.warmup import main; main()"
 	touch $@
 
@@ -51,8 +51,8 @@ $(EXPORT_BIN)/python:
 	$(PYTHON) -m venv $(EXPORT_VENV)
 
 $(EXPORT_VENV)/.installed: $(EXPORT_BIN)/python pyproject.toml $(EXPORT_LOCK)
-	$(EXPORT_BIN)/pip install -c $(EXPORT_LOCK) $(EXPORT_TORCH)
-	$(EXPORT_BIN)/pip install -c $(EXPORT_LOCK) -e ".[export,test]"
+	$(EXPORT_BIN)/pip install --no-cache-dir -c $(EXPORT_LOCK) $(EXPORT_TORCH)
+	$(EXPORT_BIN)/pip install --no-cache-dir -c $(EXPORT_LOCK) -e ".[export,test]"
 	touch $@
 
 test-export: system $(EXPORT_VENV)/.installed

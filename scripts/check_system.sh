@@ -8,8 +8,10 @@ set -euo pipefail
 apt_install() {  # apt_install PACKAGE...: as root, or with sudo; returns 1 where neither can
   if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+    apt-get clean  # the downloaded .deb files: CI's disk also holds two venvs of several GB
   elif command -v apt-get >/dev/null 2>&1 && command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
     sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+    sudo apt-get clean
   else
     return 1
   fi
