@@ -27,6 +27,9 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
   default baseline and at 0.3 (views beyond the training cameras);
 - ``direction-frequencies``: the colour MLP with NeRF's 4 frequencies of the view direction (the
   default takes the direction alone);
+- ``depth-baseline``: the virtual camera's shift a tenth of the rendered depth, not sized by the
+  training cameras' spacing where that is longer; ``virtual-occlusion``: the shifted view's occluded
+  pixels left out of the virtual-view term;
 - ``anisotropy``, ``smooth`` (off by default, measured without effect): with the anisotropy penalty,
   with edge-aware depth smoothness.
 
@@ -75,6 +78,8 @@ CASES: dict[str, dict[str, Any]] = {
     "orbit": {"virtual_motion": "orbit"},
     "orbit-wide": {"virtual_motion": "orbit", "virtual_baseline": 0.3},
     "direction-frequencies": {"color_freqs": 4},
+    "depth-baseline": {"virtual_spacing": 0.0},
+    "virtual-occlusion": {"virtual_occlusion": True},
     "no-virtual": {"lambda_virtual": 0.0},
     "no-random-background": {"random_background": False},
     "no-empty-space": {"dark_backdrop": False, "lambda_empty": 0.0},

@@ -278,6 +278,22 @@ class TrainConfig:
         check=Number(0.0, 1.0, open_low=True),
         flag="--virtual-baseline",
     )
+    # Object scans' cameras stand far apart for their depth (DTU, Blender: 0.8-1.5 depths) and their
+    # test views farther still; a forward-facing capture's (LLFF: about 0.1) keeps the 0.1 above.
+    virtual_spacing: float = in_sparse_view(
+        0.4,
+        "the virtual camera's shift as a share of the training cameras' mean spacing, where that is "
+        "longer than --virtual-baseline's (0: off)",
+        check=Number(0.0, 2.0),
+        flag="--virtual-spacing",
+    )
+    virtual_occlusion: bool = in_sparse_view(
+        False,
+        "leave out of the virtual-view term the pixels the shifted view sees something in front of "
+        "(the orbit always does)",
+        check=FLAG,
+        flag="--virtual-occlusion",
+    )
     # Any direction checks vertical parallax too, which DTU's elevations need.
     virtual_directions: str = in_sparse_view(
         "any",

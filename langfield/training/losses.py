@@ -24,6 +24,7 @@ from langfield.training.config import TrainConfig
 from langfield.training.lad import depth_loss
 from langfield.training.regularisers import (
     anisotropy_loss,
+    camera_spacing,
     depth_smoothness,
     depth_spread_loss,
     free_space_violation,
@@ -87,7 +88,10 @@ def loss_terms(run: Run, step: int, name: str, render: StepRender) -> tuple[Tens
         image.add("empty", cfg.lambda_empty * (out.alpha * (1.0 - view.coverage)).mean())
     virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
     if cfg.lambda_virtual > 0 and virtual_step:
-        virtual = virtual_view_loss(field, cam, render.target, out, render.keep, cfg, run.rng, render.grid)
+        spacing = cfg.virtual_spacing * camera_spacing(np.array([c.center for c in run.cameras.values()]))
+        virtual = virtual_view_loss(
+            field, cam, render.target, out, render.keep, cfg, run.rng, render.grid, spacing
+        )
         image.add("virtual", cfg.lambda_virtual * virtual)
     pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0
     if run.refiner is not None and pseudo_step:
@@ -147,15 +151,23 @@ def virtual_view_loss(
     cfg: TrainConfig,
     rng: np.random.Generator,
     grid: GridFeatures | None = None,
+    spacing: float = 0.0,
 ) -> Tensor:
     """Binocular consistency (Han et al. 2024): the training view's depth must warp a sideways-shifted
     render onto the training image. L1 + D-SSIM over the pixels the field covers and the warp reaches.
-    With ``virtual_motion="orbit"`` the virtual camera turns about the median depth instead and the
-    pixels it sees occluded are left out."""
+    The shift is ``cfg.virtual_baseline`` times the median rendered depth, or ``spacing`` (scene units)
+    where that is longer (:func:`langfield.training.regularisers.virtual_shift`).
+    With ``virtual_motion="orbit"`` the virtual camera turns about the median depth instead; then, or
+    with ``virtual_occlusion``, the pixels the virtual view sees occluded are left out."""
     covered = out.alpha.detach() > 0.5
     depth = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
     right, up = virtual_shift(
-        depth.detach(), covered, cfg.virtual_baseline, rng, any_direction=cfg.virtual_directions == "any"
+        depth.detach(),
+        covered,
+        cfg.virtual_baseline,
+        rng,
+        any_direction=cfg.virtual_directions == "any",
+        spacing=spacing,
     )
     if right == 0.0 and up == 0.0:
         return out.rgb.sum() * 0.0
@@ -166,16 +178,15 @@ def virtual_view_loss(
     if not bool(covered.any()):
         return out.rgb.sum() * 0.0
     if cfg.virtual_motion == "orbit":
-        pivot = float(depth.detach()[covered].median())
-        virtual = orbit_camera(cam, right, up, pivot)
-        seen = field.render(virtual, backend=cfg.backend, language=False, opacity_scale=keep, grid=grid)
+        virtual = orbit_camera(cam, right, up, float(depth.detach()[covered].median()))
+    else:
+        virtual = shifted_camera(cam, right, up)
+    seen = field.render(virtual, backend=cfg.backend, language=False, opacity_scale=keep, grid=grid)
+    if cfg.virtual_motion == "orbit" or cfg.virtual_occlusion:
         seen_depth = z_depth(seen.depth / seen.alpha.clamp_min(1e-4), virtual)
         warped, valid = reprojection_warp(seen.rgb, depth, cam, virtual, seen_depth)
     else:
-        shifted = field.render(
-            shifted_camera(cam, right, up), backend=cfg.backend, language=False, opacity_scale=keep, grid=grid
-        )
-        warped, valid = virtual_view_warp(shifted.rgb, depth, cam, right, up)
+        warped, valid = virtual_view_warp(seen.rgb, depth, cam, right, up)
     mask = (valid & covered).float()
     if float(mask.sum()) < 1:
         return out.rgb.sum() * 0.0

@@ -50,6 +50,7 @@ from langfield.camera import Camera
 
 __all__ = [
     "anisotropy_loss",
+    "camera_spacing",
     "dark_backdrop",
     "depth_smoothness",
     "drop_compensation",
@@ -297,18 +298,36 @@ def anisotropy_loss(log_scales: Tensor, ratio: float) -> Tensor:
 
 
 def virtual_shift(
-    depth_z: Tensor, valid: Tensor, fraction: float, rng: np.random.Generator, any_direction: bool = False
+    depth_z: Tensor,
+    valid: Tensor,
+    fraction: float,
+    rng: np.random.Generator,
+    any_direction: bool = False,
+    spacing: float = 0.0,
 ) -> tuple[float, float]:
-    """A random ``(right, up)`` shift of the camera, ``fraction`` times the median rendered depth long
-    (times a uniform draw in [0.5, 1]): to the left or right (a stereo pair, as Binocular-guided 3DGS),
-    or with ``any_direction`` at a uniform angle in the image plane (vertical parallax as well)."""
+    """A random ``(right, up)`` shift of the camera, ``fraction`` times the median rendered depth long,
+    or ``spacing`` (scene units) where that is longer, but never longer than the median depth (times a
+    uniform draw in [0.5, 1]): to the left or right (a stereo pair, as Binocular-guided 3DGS), or with
+    ``any_direction`` at a uniform angle in the image plane (vertical parallax as well)."""
     depths = depth_z[valid]
     scale = float(depths.median()) if depths.numel() else 0.0
-    length = float(rng.uniform(0.5, 1.0) * fraction * scale)
+    draw = rng.uniform(0.5, 1.0)
+    if fraction * scale >= spacing:
+        length = float(draw * fraction * scale)
+    else:
+        length = float(draw * min(spacing, scale))
     if any_direction:
         angle = float(rng.uniform(0.0, 2.0 * math.pi))
         return length * math.cos(angle), length * math.sin(angle)
     return float(rng.choice([-1.0, 1.0])) * length, 0.0
+
+
+def camera_spacing(centres: np.ndarray) -> float:
+    """The mean pairwise distance of [C, 3] camera centres; 0 for fewer than two."""
+    if len(centres) < 2:
+        return 0.0
+    i, j = np.triu_indices(len(centres), k=1)
+    return float(np.linalg.norm(centres[i] - centres[j], axis=1).mean())
 
 
 def depth_spread_loss(spread: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:

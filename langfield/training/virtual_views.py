@@ -30,6 +30,7 @@ from dataclasses import replace
 import numpy as np
 
 from langfield.camera import Camera
+from langfield.training.regularisers import camera_spacing
 
 __all__ = ["interpolate_camera", "sample_virtual_cameras"]
 
@@ -109,11 +110,9 @@ def interpolate_camera(a: Camera, b: Camera, t: float, *, name: str = "") -> Cam
 
 def _spread(centres: np.ndarray) -> float:
     """The length jitter is a fraction of: mean pairwise distance of [C, 3] centres (see above)."""
-    if len(centres) > 1:
-        i, j = np.triu_indices(len(centres), k=1)
-        d = float(np.linalg.norm(centres[i] - centres[j], axis=1).mean())
-        if d > 0:
-            return d
+    d = camera_spacing(centres)
+    if d > 0:
+        return d
     d = float(np.linalg.norm(centres, axis=1).mean())
     return d if d > 0 else 1.0
 

@@ -14,6 +14,7 @@ from langfield.camera import Camera
 from langfield.synthetic import make_room
 from langfield.training.regularisers import (
     anisotropy_loss,
+    camera_spacing,
     dark_backdrop,
     depth_smoothness,
     depth_spread_loss,
@@ -73,6 +74,29 @@ def test_virtual_shift_length_and_direction() -> None:
     assert lengths.min() >= 0.2 - 1e-9 and lengths.max() <= 0.4 + 1e-9
     assert (np.abs(free[:, 1]) > 0.1).mean() > 0.3  # vertical shifts occur
     assert virtual_shift(depth, torch.zeros_like(valid), 0.1, rng) == (0.0, 0.0)  # nothing covered
+
+
+def test_virtual_shift_sized_by_the_cameras_spacing() -> None:
+    depth, valid = torch.full((10, 10), 4.0), torch.ones(10, 10, dtype=torch.bool)
+
+    def lengths(spacing: float) -> np.ndarray:
+        rng = np.random.default_rng(0)
+        shifts = [virtual_shift(depth, valid, 0.1, rng, True, spacing) for _ in range(50)]
+        return np.linalg.norm(np.array(shifts), axis=1)
+
+    # The spacing is shorter than 0.1 of the depth: the depth's shift, drawn exactly as without it.
+    np.testing.assert_array_equal(lengths(0.3), lengths(0.0))
+    wide = lengths(1.2)  # longer: the spacing's length, times the same draw in [0.5, 1]
+    assert wide.min() >= 0.6 - 1e-9 and wide.max() <= 1.2 + 1e-9
+    np.testing.assert_allclose(wide / lengths(0.0), 3.0)
+    assert lengths(10.0).max() <= 4.0 + 1e-9  # never longer than the median depth
+
+
+def test_camera_spacing_is_the_mean_pairwise_distance() -> None:
+    centres = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+    assert camera_spacing(centres) == pytest.approx((3.0 + 4.0 + 5.0) / 3)
+    assert camera_spacing(centres[:1]) == 0.0  # one camera has no spacing
+    assert camera_spacing(np.zeros((3, 3))) == 0.0  # duplicate cameras
 
 
 def test_z_depth_of_a_plane_is_constant() -> None:
