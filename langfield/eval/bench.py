@@ -28,6 +28,7 @@ from langfield.raster import BACKENDS, rasterize
 from langfield.training.config import TrainConfig
 from langfield.training.loop import evaluate_psnr, train
 from langfield.training.setup import training_length
+from langfield.training.stages import StageClock
 
 
 def backend_step_ms(
@@ -190,7 +191,8 @@ def training_curve(
     """Trains once and records novel-view PSNR, mIoU (labelled scenes) and Gaussian count.
 
     A point every ``every`` iterations and at the end; evaluation time is not training time. The
-    last point also carries the query latency (see :func:`query_latency`).
+    last point also carries the query latency (see :func:`query_latency`) and the run's seconds per
+    training stage (:class:`~langfield.training.stages.StageClock`'s report).
     """
     iterations = training_length(iterations, len(scene.names("train")))["iterations"]
     points: list[dict[str, Any]] = []
@@ -213,13 +215,16 @@ def training_curve(
             )
         points.append(point)
 
+    clock = StageClock()
     train(
         scene,
         TrainConfig(iterations=iterations, seed=seed, backend=backend),
         progress=True,
         callback=record,
         callback_every=every,
+        clock=clock,
     )
+    points[-1]["stages"] = clock.report()
     return points
 
 
@@ -408,6 +413,9 @@ def format_table(result: dict) -> str:
                 f"after {quality['seconds']:.1f} s ({quality['iterations']} iterations); "
                 f"{quality['iterations_per_second']:.2f} iterations/s over the run"
             )
+        stages = points[-1].get("stages")
+        if stages and stages["seconds"] > 0:
+            lines.append(format_stages(stages))
         raster = points[-1].get("raster")
         if raster:
             lines.append(format_throughput(raster))
@@ -421,6 +429,13 @@ def format_table(result: dict) -> str:
     if result.get("peak_memory_mib"):
         lines.append(f"peak memory over the training runs: {result['peak_memory_mib']:.0f} MiB")
     return "\n".join(lines)
+
+
+def format_stages(report: dict) -> str:
+    """One line: the training run's seconds per stage, largest first, with their shares."""
+    parts = sorted(report["stages"].items(), key=lambda kv: -kv[1]["seconds"])
+    text = ", ".join(f"{name} {v['seconds']:.1f} s ({100 * v['share']:.0f} %)" for name, v in parts)
+    return f"  where the {report['seconds']:.1f} s of {report['iterations']} iterations went: {text}"
 
 
 def format_throughput(r: dict) -> str:

@@ -28,6 +28,7 @@ from langfield.training.config import TrainConfig
 from langfield.training.losses import StepRender, loss_terms
 from langfield.training.regularisers import drop_compensation, opacity_noise
 from langfield.training.setup import Run, prepare
+from langfield.training.stages import StageClock
 from langfield.training.targets import LanguageTargets, backdrop_target
 from querying.metrics import psnr
 
@@ -44,6 +45,7 @@ def train(
     progress: bool = True,
     callback: Callback | None = None,
     callback_every: int = 0,
+    clock: StageClock | None = None,
 ) -> LanguageField:
     """Trains a field on ``scene``'s training views.
 
@@ -53,33 +55,45 @@ def train(
         progress: show a tqdm bar with the loss, its largest terms and the Gaussian count.
         callback: called as ``callback(step, train_seconds, field)`` every ``callback_every`` steps and
             at the end; its own time is not counted as training time.
+        clock: where given, the seconds of each stage of the iterations go there
+            (:mod:`langfield.training.stages`).
 
     Returns:
         The trained :class:`LanguageField`; ``field.meta`` records timings, sizes and the loss terms.
     """
     run = prepare(scene, cfg or TrainConfig(), progress)
+    if clock is not None:
+        run.clock = clock
     cfg, field, names = run.cfg, run.field, list(run.views)
+    stage = run.clock.stage
     order: list[str] = []
     log = LossLog()
     train_seconds = 0.0
     bar = tqdm(total=cfg.iterations, disable=not progress, desc="train", dynamic_ncols=True, leave=False)
     for step in range(cfg.iterations):
         t0 = time.perf_counter()
-        run.strategy.before_render(step)
+        with stage("strategy"):
+            run.strategy.before_render(step)
         if not order:
             order = [names[i] for i in run.rng.permutation(len(names))]
         name = order.pop()
         render = render_step(run, step, name)
         loss, terms = loss_terms(run, step, name, render)
-        loss.backward()
-        run.strategy.after_backward(step, render.out, render.view.camera)
-        for opt in run.optimizers.values():
-            opt.step()
-            opt.zero_grad(set_to_none=True)
-        message = run.strategy.after_optimizer_step(step)
+        with stage("backward"):
+            loss.backward()
+        with stage("strategy"):
+            run.strategy.after_backward(step, render.out, render.view.camera)
+        with stage("optimizer"):
+            for opt in run.optimizers.values():
+                opt.step()
+                opt.zero_grad(set_to_none=True)
+        with stage("strategy"):
+            message = run.strategy.after_optimizer_step(step)
         if message:
             bar.write(message)
-        train_seconds += time.perf_counter() - t0
+        seconds = time.perf_counter() - t0
+        train_seconds += seconds
+        run.clock.add_iteration(seconds)
         log.add(step, loss, terms)
         bar.update(1)
         if step % 10 == 0:
@@ -138,17 +152,19 @@ def render_step(run: Run, step: int, name: str) -> StepRender:
     target = view.image
     if view.coverage is not None and behind is not None:  # a photo's backdrop shows the random colour
         target = backdrop_target(view.image, view.coverage, behind)
-    grid = field.grid_features()  # read once, shared by this step's renders
-    out = field.render(
-        view.camera,
-        backend=cfg.backend,
-        hard_depth=view.depth is not None,
-        language=step >= run.language_steps,
-        opacity_scale=keep,
-        background=behind,
-        grid=grid,
-        depth_spread=cfg.lambda_spread > 0 and step >= cfg.spread_start * cfg.iterations,
-    )
+    with run.clock.stage("hash grids"):
+        grid = field.grid_features()  # read once, shared by this step's renders
+    with run.clock.stage("render"):
+        out = field.render(
+            view.camera,
+            backend=cfg.backend,
+            hard_depth=view.depth is not None,
+            language=step >= run.language_steps,
+            opacity_scale=keep,
+            background=behind,
+            grid=grid,
+            depth_spread=cfg.lambda_spread > 0 and step >= cfg.spread_start * cfg.iterations,
+        )
     return StepRender(view, out, target, keep, grid)
 
 

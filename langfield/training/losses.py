@@ -82,23 +82,28 @@ def loss_terms(run: Run, step: int, name: str, render: StepRender) -> tuple[Tens
     """
     cfg, field, view, out = run.cfg, run.field, render.view, render.out
     cam = view.camera
+    stage = run.clock.stage
     image = Terms()
-    image.add("color", color_loss(out.rgb, render.target, cfg.lambda_dssim))
-    if view.coverage is not None and cfg.lambda_empty > 0:
-        image.add("empty", cfg.lambda_empty * (out.alpha * (1.0 - view.coverage)).mean())
+    with stage("colour loss"):
+        image.add("color", color_loss(out.rgb, render.target, cfg.lambda_dssim))
+        if view.coverage is not None and cfg.lambda_empty > 0:
+            image.add("empty", cfg.lambda_empty * (out.alpha * (1.0 - view.coverage)).mean())
     virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
     if cfg.lambda_virtual > 0 and virtual_step:
         spacing = cfg.virtual_spacing * camera_spacing(np.array([c.center for c in run.cameras.values()]))
-        virtual = virtual_view_loss(
-            field, cam, render.target, out, render.keep, cfg, run.rng, render.grid, spacing
-        )
-        image.add("virtual", cfg.lambda_virtual * virtual)
+        with stage("virtual view"):
+            virtual = virtual_view_loss(
+                field, cam, render.target, out, render.keep, cfg, run.rng, render.grid, spacing
+            )
+            image.add("virtual", cfg.lambda_virtual * virtual)
     pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0
     if run.refiner is not None and pseudo_step:
         cameras = list(run.cameras.values())
-        pseudo = pseudo_view_loss(field, run.refiner, cameras, cfg, run.rng, render.grid)
-        image.add("pseudo", cfg.lambda_refiner * pseudo)
-    others = _geometry_and_language_terms(run, name, view, out)
+        with stage("virtual view"):
+            pseudo = pseudo_view_loss(field, run.refiner, cameras, cfg, run.rng, render.grid)
+            image.add("pseudo", cfg.lambda_refiner * pseudo)
+    with stage("other terms"):
+        others = _geometry_and_language_terms(run, name, view, out)
     total = image.total if others.total is None else image.total + others.total
     return total, {**image, **others}
 

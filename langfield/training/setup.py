@@ -28,6 +28,7 @@ from langfield.model.language import LANGUAGE_CHANNELS, N_LEVELS, LanguageHeads,
 from langfield.raster import resolve_backend
 from langfield.training.config import TrainConfig, flag_of
 from langfield.training.lad import LADTarget
+from langfield.training.stages import StageClock
 from langfield.training.start import StartPoints, start_points
 from langfield.training.strategy import TrainingStrategy, field_extent, stereo_surfaces
 from langfield.training.targets import (
@@ -259,6 +260,7 @@ class Run:
     drop_generator: torch.Generator
     # Each view's last rendered surface (camera, z-depth, covered), for the free-space term.
     rendered: dict[str, tuple[Camera, Tensor, Tensor]] = dataclasses.field(default_factory=dict)
+    clock: StageClock = dataclasses.field(default_factory=lambda: StageClock(enabled=False))
 
 
 def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:

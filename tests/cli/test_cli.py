@@ -255,6 +255,9 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     assert list(result["curves"]) == [f"{W}x{H}", f"{W // 2}x{H // 2}"]
     assert all(0 <= p["mIoU"] <= 1 for c in result["curves"].values() for p in c)  # the room is labelled
     assert result["curve"][-1]["query_ms_per_view"]["ms"] > 0
+    stages = result["curve"][-1]["stages"]  # the curve's run, timed per stage
+    assert stages["iterations"] == 20 and stages["stages"]["render"]["seconds"] > 0
+    assert sum(v["share"] for v in stages["stages"].values()) == pytest.approx(1.0)
     quality = result["time_to_quality"][f"{W}x{H}"]
     assert quality["reference_PSNR"] == result["curve"][-1]["PSNR"] and quality["iterations"] in (10, 20)
     assert quality["iterations_per_second"] == pytest.approx(20 / result["curve"][-1]["seconds"])
@@ -264,7 +267,7 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     assert raster["pairs_per_second"] == pytest.approx(raster["pairs"] / (raster["step_ms"] / 1000))
     printed = capsys.readouterr().out
     assert "faster than torch" in printed and "within 0.3 dB of the last point" in printed
-    assert "Gaussian-pixel pairs" in printed
+    assert "Gaussian-pixel pairs" in printed and "iterations went: " in printed
 
 
 def test_time_to_quality_is_the_first_point_within_the_tolerance_of_the_last() -> None:

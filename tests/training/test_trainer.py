@@ -16,6 +16,7 @@ from langfield.model import gaussians as G
 from langfield.training import setup as T
 from langfield.training.loop import evaluate_psnr
 from langfield.training.losses import color_loss
+from langfield.training.stages import STAGES, StageClock
 
 
 @pytest.fixture(scope="module")
@@ -45,6 +46,44 @@ def test_same_seed_and_config_give_identical_fields(scene) -> None:
         assert torch.equal(a.splats[key], b.splats[key]), key
     for (name, pa), pb in zip(a.color.state_dict().items(), b.color.state_dict().values(), strict=True):
         assert torch.equal(pa, pb), name
+
+
+def test_stage_clock_times_every_stage_without_changing_the_training(scene) -> None:
+    cfg = dict(iterations=12, num_gaussians=300, seed=3, refine_start=5, refine_every=5, grad_threshold=1e-7)
+    clock = StageClock()
+    timed = train(scene, TrainConfig(**cfg, virtual_every=2), progress=False, clock=clock)
+    plain = _train(scene, **cfg, virtual_every=2)
+    for key in plain.splats:  # the clock only reads the time
+        assert torch.equal(timed.splats[key], plain.splats[key]), key
+    report = clock.report()
+    assert report["iterations"] == 12 and report["seconds"] > 0
+    stages = report["stages"]
+    assert set(stages) == {*STAGES, "other"}
+    for name in (
+        "render",
+        "hash grids",
+        "colour loss",
+        "virtual view",
+        "other terms",
+        "backward",
+        "optimizer",
+    ):
+        assert stages[name]["seconds"] > 0, name
+    assert sum(v["share"] for v in stages.values()) == pytest.approx(1.0)
+    assert report["seconds"] <= timed.meta.train_seconds + 1e-9  # the loop's own clock counts the same
+
+
+def test_stage_clock_switched_off_counts_nothing_and_refuses_unknown_stages() -> None:
+    off = StageClock(enabled=False)
+    with off.stage("render"), off.stage("not a stage"):
+        pass
+    off.add_iteration(1.0)
+    assert off.report()["iterations"] == 0 and off.report()["stages"]["render"]["share"] is None
+    with (
+        pytest.raises(ValueError, match="unknown training stage 'rendering'"),
+        StageClock().stage("rendering"),
+    ):
+        pass
 
 
 @pytest.mark.slow
