@@ -278,8 +278,7 @@ class TrainConfig:
         check=Number(0.0, 1.0, open_low=True),
         flag="--virtual-baseline",
     )
-    # Object scans' cameras stand far apart for their depth (DTU, Blender: 0.8-1.5 depths) and their
-    # test views farther still; a forward-facing capture's (LLFF: about 0.1) keeps the 0.1 above.
+    # Object scans' cameras stand 0.8-1.5 depths apart (DTU, Blender), LLFF's about 0.1: it keeps 0.1.
     virtual_spacing: float = in_sparse_view(
         0.4,
         "the virtual camera's shift as a share of the training cameras' mean spacing, where that is "
