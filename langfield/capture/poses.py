@@ -45,6 +45,10 @@ Matching = Literal["exhaustive", "sequential"]
 Progress = Callable[[str, int], Callable[[int], None]]  # (stage, total) -> advance(n)
 
 _SEED = 0
+# COLMAP repeats a run only on one thread: its feature extraction, RANSAC draws and Ceres' bundle
+# adjustment depend on the threads' order otherwise (colmap/colmap#727, #3544; here the extraction too,
+# tested), and a capture that does not repeat gives a scene, and figures, that do not either.
+_THREADS = 1
 _SEQUENTIAL_OVERLAP = 10  # COLMAP's default for sequential matching
 _KEYFRAMES = 15  # loop closure: every pair among about this many frames spread over the video
 _PAIR_CHUNK = 40  # pairs matched per pycolmap call, so that the bar moves
@@ -276,7 +280,7 @@ def _extract(pycolmap, database: Path, image_dir: Path, names, camera, attempt, 
                 reader.existing_camera_id = 1
         options = pycolmap.FeatureExtractionOptions()
         options.use_gpu = False
-        options.num_threads = -1
+        options.num_threads = _THREADS
         if attempt.features == "dense":
             options.sift.peak_threshold = 0.02 / 9  # a third of COLMAP's 0.02 / octave_resolution
             options.sift.max_num_features = 16384
@@ -323,7 +327,7 @@ def _match(pycolmap, database: Path, work: Path, pairs, attempt, progress) -> No
         pairing.match_list_path = str(pair_file)
         options = pycolmap.FeatureMatchingOptions()
         options.use_gpu = False
-        options.num_threads = -1
+        options.num_threads = _THREADS
         options.guided_matching = attempt.guided
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = _SEED
@@ -340,6 +344,7 @@ def _match(pycolmap, database: Path, work: Path, pairs, attempt, progress) -> No
 def _map(pycolmap, database: Path, image_dir: Path, out: Path, names, attempt, progress) -> dict:
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = _SEED
+    options.num_threads = _THREADS
     options.min_model_size = MIN_FRAMES  # report small models too, rather than drop their frames
     if attempt.relaxed:
         options.min_num_matches = 10

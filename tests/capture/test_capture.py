@@ -231,6 +231,19 @@ def test_the_readme_commands_run_on_a_photo_folder(tmp_path, capsys) -> None:
     shutil.rmtree(tmp_path / "my_field")
 
 
+@pytest.mark.slow
+def test_a_capture_repeats_exactly(tmp_path) -> None:
+    """COLMAP runs on one thread: its results depend on the threads' order otherwise."""
+    photos = write_photos(tmp_path / "photos", arc_cameras(8, width=200, height=150))
+    poses = []
+    for out in ("a", "b"):
+        capture(photos, tmp_path / out, CaptureOptions())
+        scene = load_scene(tmp_path / out)
+        poses.append(np.array([scene.camera(n).c2w for n in scene.names("all")]))
+    assert len(poses[0]) == 8
+    np.testing.assert_array_equal(poses[0], poses[1])
+
+
 def test_three_photos_with_an_exif_focal_length_are_posed(tmp_path) -> None:
     """Three photos are the least a scene needs; their EXIF 35 mm focal length (30 mm: the room's 60
     degree lens at 320 x 240 is 277 pixels) starts COLMAP's focal length (without it: 3.3 degrees)."""
