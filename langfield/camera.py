@@ -26,6 +26,14 @@ FOCAL_RANGE = (0.05, 100.0)
 MAX_ASPECT = 4.0
 
 
+def camera_spacing(centres: np.ndarray) -> float:
+    """The mean pairwise distance of [C, 3] camera centres; 0 for fewer than two."""
+    if len(centres) < 2:
+        return 0.0
+    i, j = np.triu_indices(len(centres), k=1)
+    return float(np.linalg.norm(centres[i] - centres[j], axis=1).mean())
+
+
 def box_corners(box: np.ndarray) -> np.ndarray:
     """[8, 3] the corners of the axis-aligned box [[xmin, ymin, zmin], [xmax, ymax, zmax]]."""
     return np.array([[box[i][0], box[j][1], box[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from langfield.camera import Camera
+from langfield.camera import Camera, camera_spacing
 
 
 def _camera() -> Camera:
@@ -108,3 +108,10 @@ def test_a_pose_that_is_not_a_rigid_motion_is_refused_with_a_hint(change, said) 
 def test_intrinsics_that_cannot_belong_to_the_image_are_refused(intrinsics, said) -> None:
     with pytest.raises(ValueError, match=said):
         _posed(**intrinsics)
+
+
+def test_camera_spacing_is_the_mean_pairwise_distance() -> None:
+    centres = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+    assert camera_spacing(centres) == pytest.approx((3.0 + 4.0 + 5.0) / 3)
+    assert camera_spacing(centres[:1]) == 0.0  # one camera has no spacing
+    assert camera_spacing(np.zeros((3, 3))) == 0.0  # duplicate cameras

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from langfield.camera import Camera
+from langfield.camera import Camera, camera_spacing
 
 VIEW_CLASSES = ("near", "between", "beyond")
 NEAR, NEAR_ANGLE = 0.25, 15.0  # baselines; degrees
@@ -64,8 +64,7 @@ def classify_views(train: Sequence[Camera], test: Sequence[Camera]) -> dict[str,
     """``{test name: {"class", "nearest", "angle", "outside"}}`` (module docstring)."""
     centres = np.stack([c.center for c in train])
     forwards = np.stack([c.forward for c in train])
-    pairs = [np.linalg.norm(a - b) for i, a in enumerate(centres) for b in centres[i + 1 :]]
-    baseline = float(np.mean(pairs)) if pairs else 0.0
+    baseline = camera_spacing(centres)
     out = {}
     for cam in test:
         gaps = np.linalg.norm(centres - cam.center, axis=1)

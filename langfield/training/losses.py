@@ -24,7 +24,6 @@ from langfield.training.config import TrainConfig
 from langfield.training.lad import depth_loss
 from langfield.training.regularisers import (
     anisotropy_loss,
-    camera_spacing,
     depth_smoothness,
     depth_spread_loss,
     free_space_violation,
@@ -90,10 +89,9 @@ def loss_terms(run: Run, step: int, name: str, render: StepRender) -> tuple[Tens
             image.add("empty", cfg.lambda_empty * (out.alpha * (1.0 - view.coverage)).mean())
     virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
     if cfg.lambda_virtual > 0 and virtual_step:
-        spacing = cfg.virtual_spacing * camera_spacing(np.array([c.center for c in run.cameras.values()]))
         with stage("virtual view"):
             virtual = virtual_view_loss(
-                field, cam, render.target, out, render.keep, cfg, run.rng, render.grid, spacing
+                field, cam, render.target, out, render.keep, cfg, run.rng, render.grid, run.virtual_spacing
             )
             image.add("virtual", cfg.lambda_virtual * virtual)
     pseudo_step = step >= cfg.refiner_start and (step - cfg.refiner_start) % cfg.refiner_every == 0

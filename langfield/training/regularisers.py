@@ -50,7 +50,6 @@ from langfield.camera import Camera
 
 __all__ = [
     "anisotropy_loss",
-    "camera_spacing",
     "dark_backdrop",
     "depth_smoothness",
     "drop_compensation",
@@ -320,14 +319,6 @@ def virtual_shift(
         angle = float(rng.uniform(0.0, 2.0 * math.pi))
         return length * math.cos(angle), length * math.sin(angle)
     return float(rng.choice([-1.0, 1.0])) * length, 0.0
-
-
-def camera_spacing(centres: np.ndarray) -> float:
-    """The mean pairwise distance of [C, 3] camera centres; 0 for fewer than two."""
-    if len(centres) < 2:
-        return 0.0
-    i, j = np.triu_indices(len(centres), k=1)
-    return float(np.linalg.norm(centres[i] - centres[j], axis=1).mean())
 
 
 def depth_spread_loss(spread: Tensor, depth: Tensor, alpha: Tensor) -> Tensor:

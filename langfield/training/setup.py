@@ -16,7 +16,7 @@ from torch import Tensor
 
 from encoders.autoencoder import decoder_state, load_decoder
 from encoders.protocols import LEVELS
-from langfield.camera import Camera
+from langfield.camera import Camera, camera_spacing
 from langfield.field import LanguageField, color_field_spec
 from langfield.io.layout import SceneError
 from langfield.io.ply import read_points
@@ -260,6 +260,7 @@ class Run:
     drop_generator: torch.Generator
     # Each view's last rendered surface (camera, z-depth, covered), for the free-space term.
     rendered: dict[str, tuple[Camera, Tensor, Tensor]] = dataclasses.field(default_factory=dict)
+    virtual_spacing: float = 0.0  # the virtual camera's shift from the cameras' spacing (scene units)
     clock: StageClock = dataclasses.field(default_factory=lambda: StageClock(enabled=False))
 
 
@@ -319,4 +320,5 @@ def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:
         language_steps=round(cfg.language_start * cfg.iterations),
         rng=np.random.default_rng(cfg.seed),
         drop_generator=torch.Generator().manual_seed(cfg.seed),
+        virtual_spacing=cfg.virtual_spacing * camera_spacing(np.stack([c.center for c in cameras.values()])),
     )

@@ -29,8 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from langfield.camera import Camera
-from langfield.training.regularisers import camera_spacing
+from langfield.camera import Camera, camera_spacing
 
 __all__ = ["interpolate_camera", "sample_virtual_cameras"]
 

@@ -14,7 +14,6 @@ from langfield.camera import Camera
 from langfield.synthetic import make_room
 from langfield.training.regularisers import (
     anisotropy_loss,
-    camera_spacing,
     dark_backdrop,
     depth_smoothness,
     depth_spread_loss,
@@ -90,13 +89,6 @@ def test_virtual_shift_sized_by_the_cameras_spacing() -> None:
     assert wide.min() >= 0.6 - 1e-9 and wide.max() <= 1.2 + 1e-9
     np.testing.assert_allclose(wide / lengths(0.0), 3.0)
     assert lengths(10.0).max() <= 4.0 + 1e-9  # never longer than the median depth
-
-
-def test_camera_spacing_is_the_mean_pairwise_distance() -> None:
-    centres = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
-    assert camera_spacing(centres) == pytest.approx((3.0 + 4.0 + 5.0) / 3)
-    assert camera_spacing(centres[:1]) == 0.0  # one camera has no spacing
-    assert camera_spacing(np.zeros((3, 3))) == 0.0  # duplicate cameras
 
 
 def test_z_depth_of_a_plane_is_constant() -> None:
@@ -602,9 +594,7 @@ def test_free_space_violation_counts_points_in_front_of_the_other_view_only() ->
 
     a, b, depth_a, depth_b = _plane_views()
     covered = torch.ones(30, 40, dtype=torch.bool)
-    on_surface, valid = free_space_violation(
-        a.unproject(depth_a).reshape(-1, 3), b, depth_b, covered, 0.02
-    )
+    on_surface, valid = free_space_violation(a.unproject(depth_a).reshape(-1, 3), b, depth_b, covered, 0.02)
     assert valid.float().mean() > 0.5 and float(on_surface.abs().max()) < 1e-5
     near = a.unproject(depth_a * 0.5).reshape(-1, 3)  # halfway to a: b looks through these
     violation, valid = free_space_violation(near, b, depth_b, covered, 0.02)
