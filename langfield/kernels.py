@@ -24,6 +24,7 @@ __all__ = [
     "configure_numba_threads",
     "notice_once",
     "resolve_backend",
+    "reuse_freed_memory",
     "uncompiled_kernels",
 ]
 
@@ -78,6 +79,39 @@ def configure_numba_threads() -> None:
         import numba
 
         numba.config.THREADING_LAYER = "workqueue"
+
+
+_MALLOC_SET = False
+# glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+
+
+def reuse_freed_memory() -> bool:
+    """Asks glibc's malloc to keep freed memory for the next allocation; True if it took.
+
+    A training step allocates and frees the same large tensors every iteration (the hash grid's corner
+    rows alone are 48 MB for 50k Gaussians). Above its mmap threshold (at most 32 MB by default) glibc
+    maps every such block afresh and returns it on free, so each step pays a page fault per 4 KB page
+    it touches: about 12,000 faults and 10 % of a fern step (208 -> 186 ms at 50k Gaussians, measured
+    with the faults counted per step). Raising the mmap and trim thresholds keeps the blocks in the heap
+    for reuse; the process's memory then stays at its peak until it exits, which a training run reaches
+    anyway. Once per process; a C library without ``mallopt`` (not glibc) is left alone. Set
+    ``LANGFIELD_MALLOC=system`` to keep glibc's defaults.
+    """
+    global _MALLOC_SET
+    if _MALLOC_SET or os.environ.get("LANGFIELD_MALLOC") == "system":
+        return _MALLOC_SET
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        ok = libc.mallopt(_M_MMAP_THRESHOLD, 1 << 30) == 1
+        ok = ok and libc.mallopt(_M_TRIM_THRESHOLD, (1 << 31) - 1) == 1
+    except (OSError, AttributeError):
+        ok = False
+    _MALLOC_SET = ok
+    return ok
 
 
 def _dispatchers() -> dict[str, object]:

@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from langfield.kernels import notice_once, resolve_backend
-from langfield.model.hashgrid_cpu import InterpolateRowsNumba
+from langfield.model.hashgrid_cpu import CornersNumba, InterpolateRowsNumba
 
 # Instant-NGP's spatial-hash primes (paper eq. 4); the first is 1 for cache coherence.
 _PRIMES = (1, 2654435761, 805459861)
@@ -178,9 +180,9 @@ class HashGrid(nn.Module):
             raise ValueError(
                 f"grid box needs a finite centre and a positive half extent, got {center}, {half}"
             )
-        # Which interpolation runs, named as the rasterizer's backends: "numba" (and "auto", on CPU
-        # tensors) the numba kernels of :mod:`langfield.model.hashgrid_cpu`; "torch" the PyTorch
-        # reference (``_InterpolateRows``) the tests compare them against.
+        # Which cell look-up and interpolation run, named as the rasterizer's backends: "numba" (and
+        # "auto", on CPU tensors) the numba kernels of :mod:`langfield.model.hashgrid_cpu`; "torch" the
+        # PyTorch reference (corners' tensor code, ``_InterpolateRows``) the tests compare them against.
         self.backend = "auto"
         self.register_buffer("center", center)
         self.register_buffer("half_extent", half)
@@ -253,6 +255,11 @@ class HashGrid(nn.Module):
         """
         if x.dim() != 2 or x.shape[-1] != 3:
             raise ValueError(f"HashGrid expects positions of shape [N, 3], got {tuple(x.shape)}")
+        if resolve_backend(self.backend) == "numba" and x.device.type == "cpu":
+            # One kernel for both outputs; the tensor code below is its reference.
+            notice_once()
+            new_rows, frac = CornersNumba.apply(x, self._layout())
+            return (new_rows if rows is None else rows), frac
         # Axis-major [3, L, N] layout keeps N innermost, so every broadcast over corners or levels below
         # runs over long contiguous rows (3-4x faster on the CPU than the point-major [N, L, 3]).
         pos = self.normalize(x).t()[:, None, :] * self.resolution.to(x.dtype)[None, :, None]
@@ -261,6 +268,20 @@ class HashGrid(nn.Module):
         lo = torch.minimum(pos.detach().floor().to(torch.int64), self.max_corner)
         frac = pos - lo.to(x.dtype)
         return (self._corner_rows(lo) if rows is None else rows), frac
+
+    def _layout(self) -> dict[str, Any]:
+        """The grid's cell layout as numpy arrays, for :class:`CornersNumba`."""
+        return {
+            "center": self.center.detach().cpu().numpy(),
+            "two_half": (2.0 * self.half_extent).detach().cpu().numpy(),
+            "res": self.resolution.cpu().numpy(),
+            "max_corner": self.max_corner[:, 0].cpu().numpy(),
+            "strides": self.dense_strides.cpu().numpy(),  # [3, L]
+            "level_offset": self.level_offset.cpu().numpy(),
+            "n_dense": self.n_dense,
+            "primes": np.array(_PRIMES, dtype=np.int64),
+            "mask": self.cfg.table_size - 1,
+        }
 
     def interpolate(self, rows: Tensor, frac: Tensor, groups: int = 1) -> Tensor:
         """Trilinearly interpolate the table at the corners found by :meth:`corners`.

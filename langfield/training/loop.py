@@ -23,6 +23,7 @@ from tqdm import tqdm
 from langfield.camera import Camera
 from langfield.field import LanguageField
 from langfield.io.scene import Scene
+from langfield.kernels import reuse_freed_memory
 from langfield.training.aggregate import register_entries
 from langfield.training.config import TrainConfig
 from langfield.training.losses import StepRender, loss_terms
@@ -61,6 +62,7 @@ def train(
     Returns:
         The trained :class:`LanguageField`; ``field.meta`` records timings, sizes and the loss terms.
     """
+    reuse_freed_memory()
     run = prepare(scene, cfg or TrainConfig(), progress)
     if clock is not None:
         run.clock = clock
