@@ -25,8 +25,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
     print(f"[1/6] built-in scene written to {scene_dir}")
     scene = load_scene(scene_dir)
-    length = training_length(args.iterations, len(scene.names("train")))["iterations"]
-    print(f"[2/6] training on {len(scene.names('train'))} views ({length} iterations)")
+    length = training_length(args.iterations, len(scene.names("train")))
+    most = "" if length["forced"] else "at most "
+    print(f"[2/6] training on {len(scene.names('train'))} views ({most}{length['iterations']} iterations)")
     field = train(scene, TrainConfig(iterations=args.iterations, seed=args.seed))
     field.meta["scene_args"] = {"resolution": 1.0, "views": None, "n_views": None}
     field.save(out / "field", overwrite=True)  # the demo's folder is its own: a rerun replaces it

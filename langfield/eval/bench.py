@@ -26,9 +26,9 @@ from langfield.io.scene import Scene
 from langfield.model import gaussians as G
 from langfield.raster import BACKENDS, rasterize
 from langfield.training.config import TrainConfig
-from langfield.training.loop import evaluate_psnr, train
-from langfield.training.setup import training_length
+from langfield.training.loop import LOSS_LOG_EVERY, evaluate_psnr, train
 from langfield.training.stages import StageClock
+from langfield.training.stopping import PATIENCE
 
 
 def backend_step_ms(
@@ -194,7 +194,6 @@ def training_curve(
     last point also carries the query latency (see :func:`query_latency`) and the run's seconds per
     training stage (:class:`~langfield.training.stages.StageClock`'s report).
     """
-    iterations = training_length(iterations, len(scene.names("train")))["iterations"]
     points: list[dict[str, Any]] = []
     labelled = any(scene.segmentations(n) for n in scene.names("test"))
 
@@ -206,17 +205,10 @@ def training_curve(
         else:
             point["PSNR"] = evaluate_psnr(field, scene)
         point["num_gaussians"] = field.num_gaussians
-        if step == iterations and labelled and field.has_language:
-            point["query_ms_per_view"] = query_latency(field, scene)
-        if step == iterations:  # the rasterizer on the Gaussians training ended with
-            sp = field.splats
-            point["raster"] = raster_throughput(
-                sp["means"], sp["quats"], G.scales(sp), G.opacities(sp), scene.cameras("train")[0]
-            )
         points.append(point)
 
     clock = StageClock()
-    train(
+    field = train(
         scene,
         TrainConfig(iterations=iterations, seed=seed, backend=backend),
         progress=True,
@@ -224,7 +216,15 @@ def training_curve(
         callback_every=every,
         clock=clock,
     )
-    points[-1]["stages"] = clock.report()
+    last = points[-1]
+    last["stages"] = clock.report()
+    last["stopped"] = field.meta.get("stopped")
+    if labelled and field.has_language:
+        last["query_ms_per_view"] = query_latency(field, scene)
+    sp = field.splats  # the rasterizer on the Gaussians training ended with
+    last["raster"] = raster_throughput(
+        sp["means"], sp["quats"], G.scales(sp), G.opacities(sp), scene.cameras("train")[0]
+    )
     return points
 
 
@@ -251,6 +251,20 @@ def time_to_quality(points: list[dict], tolerance_db: float = 0.3) -> dict[str, 
         "iterations": first["iterations"],
         "iterations_per_second": last["iterations"] / last["seconds"] if last["seconds"] > 0 else None,
     }
+
+
+def format_stop(stopped: dict[str, Any]) -> str:
+    """Why training stopped (field.json's ``stopped``), in words."""
+    n, length = stopped["iteration"], stopped["length"]
+    if stopped["reason"] != "plateau":
+        whose = "forced" if stopped["reason"] == "forced" else "scene's"
+        return f"trained the {whose} length, {n} iterations"
+    gains = ", ".join(f"{t} {100 * v['gain']:.2f} %" for t, v in stopped["terms"].items())
+    return (
+        f"stopped at {n} of {length} iterations: the last {PATIENCE * LOSS_LOG_EVERY} bettered the best "
+        f"fitting loss by {gains} "
+        f"(under {100 * stopped['tolerance']:g} %)"
+    )
 
 
 def peak_memory_mib() -> float:
@@ -413,6 +427,9 @@ def format_table(result: dict) -> str:
                 f"after {quality['seconds']:.1f} s ({quality['iterations']} iterations); "
                 f"{quality['iterations_per_second']:.2f} iterations/s over the run"
             )
+        stopped = points[-1].get("stopped")
+        if stopped:
+            lines.append(f"  {format_stop(stopped)}")
         stages = points[-1].get("stages")
         if stages and stages["seconds"] > 0:
             lines.append(format_stages(stages))

@@ -59,12 +59,7 @@ def _in(group: str):
 
 # A setting of each group: setting(default, help, check=..., flag=...) (langfield.training.settings).
 in_run, in_start, in_model, in_losses = _in("run"), _in("start"), _in("model"), _in("losses")
-in_sparse_view, in_schedule, in_strategy, in_lop = (
-    _in("sparse-view"),
-    _in("schedule"),
-    _in("strategy"),
-    _in("lop"),
-)
+in_sparse_view, in_schedule, in_strategy, in_lop = map(_in, ("sparse-view", "schedule", "strategy", "lop"))
 
 
 @dataclass(frozen=True)
@@ -82,6 +77,13 @@ class TrainConfig:
         check=Whole(0, optional=True),
         flag="--iterations",
         parse=int,
+    )
+    # Fern's colour term levels off by 1300 of 1500 iterations (langfield.training.stopping).
+    stop_plateau: float = in_run(
+        0.01,
+        "end an unforced run once 200 iterations better the best fitting loss by under this fraction (0: no)",
+        check=Number(0.0, 1.0),
+        flag="--stop-plateau",
     )
     seed: int = in_run(0, "seed of the start and the view order", check=Whole(0), flag="--seed")
     backend: str = in_run(
@@ -466,12 +468,9 @@ CONFIG_FLAGS = {f.name: f.metadata["flag"] for f in dataclasses.fields(TrainConf
 
 # Settings that rule one another out: (setting, test, what it must be).
 _CROSS_CHECKS = (
-    (
-        "carve_free_space",
-        lambda cfg: not cfg.carve_free_space or cfg.init in ("auto", "dense", "depth"),
-        "False unless init is 'dense' or 'depth' (it carves with their stereo)",
-    ),
-)
+    ("carve_free_space", lambda cfg: not cfg.carve_free_space or cfg.init in ("auto", "dense", "depth"),
+     "False unless init is 'dense' or 'depth' (it carves with their stereo)"),
+)  # fmt: skip
 
 
 def check_config(cfg: TrainConfig) -> None:

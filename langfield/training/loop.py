@@ -3,7 +3,9 @@
 One iteration: the strategy's pre-render edit (carving), the training view rendered
 (:func:`render_step`: the position learning rate's decay, dropout, a random background), the named loss
 terms (:func:`~langfield.training.losses.loss_terms`) summed and back-propagated, densification, the
-optimizers' step, opacity decay and LOP (:class:`~langfield.training.strategy.TrainingStrategy`). Each
+optimizers' step, opacity decay and LOP (:class:`~langfield.training.strategy.TrainingStrategy`).
+The run ends at its length, or earlier where its length was not forced and the fitting terms have
+levelled off (:mod:`langfield.training.stopping`); field.json's ``stopped`` says which. Each
 term's mean over every ``LOSS_LOG_EVERY`` iterations goes into field.json (``loss_terms``), and the
 progress bar shows the largest. After the last iteration each Gaussian is registered to the training
 masks it renders most (:func:`registered_entries`), timed apart from the loop.
@@ -30,6 +32,7 @@ from langfield.training.losses import StepRender, loss_terms
 from langfield.training.regularisers import drop_compensation, opacity_noise
 from langfield.training.setup import Run, prepare
 from langfield.training.stages import StageClock
+from langfield.training.stopping import PlateauStop
 from langfield.training.targets import LanguageTargets, backdrop_target
 from querying.metrics import psnr
 
@@ -55,7 +58,7 @@ def train(
         cfg: settings; ``TrainConfig()`` if None.
         progress: show a tqdm bar with the loss, its largest terms and the Gaussian count.
         callback: called as ``callback(step, train_seconds, field)`` every ``callback_every`` steps and
-            at the end; its own time is not counted as training time.
+            at the end (with the iterations run); its own time is not counted as training time.
         clock: where given, the seconds of each stage of the iterations go there
             (:mod:`langfield.training.stages`).
 
@@ -71,6 +74,8 @@ def train(
     order: list[str] = []
     log = LossLog()
     train_seconds = 0.0
+    stop = plateau_stop(run)
+    steps_run = cfg.iterations
     bar = tqdm(total=cfg.iterations, disable=not progress, desc="train", dynamic_ncols=True, leave=False)
     for step in range(cfg.iterations):
         t0 = time.perf_counter()
@@ -98,6 +103,9 @@ def train(
         run.clock.add_iteration(seconds)
         log.add(step, loss, terms)
         bar.update(1)
+        if stop is not None and (step + 1) % LOSS_LOG_EVERY == 0 and stop.levelled(log.closed()):
+            steps_run = step + 1
+            break
         if step % 10 == 0:
             bar.set_postfix(log.postfix(loss), gaussians=str(field.num_gaussians))
         if (
@@ -108,13 +116,20 @@ def train(
         ):
             callback(step + 1, train_seconds, field)
     bar.close()
-    _finish(run, train_seconds, log)
+    _finish(run, train_seconds, log, steps_run, stop)
     if callback is not None:
-        callback(cfg.iterations, train_seconds, field)
+        callback(steps_run, train_seconds, field)
     return field
 
 
-def _finish(run: Run, train_seconds: float, log: LossLog) -> None:
+def plateau_stop(run: Run) -> PlateauStop | None:
+    """The run's early stop, or None where its length was forced or ``stop_plateau`` is 0."""
+    if run.field.meta["training_length"]["forced"] or run.cfg.stop_plateau <= 0:
+        return None
+    return PlateauStop(run.cfg.stop_plateau, first_step=run.half_steps)
+
+
+def _finish(run: Run, train_seconds: float, log: LossLog, steps: int, stop: PlateauStop | None) -> None:
     """Registers each Gaussian to its training masks and records the run in field.meta."""
     cfg, field = run.cfg, run.field
     if field.codebook is not None and run.targets is not None:
@@ -123,11 +138,16 @@ def _finish(run: Run, train_seconds: float, log: LossLog) -> None:
         field.entries = registered_entries(field, run.cameras, run.targets)
         seconds = round(time.perf_counter() - t0, 3)
         field.meta["language"] = dict(field.meta["language"], registered=True, register_seconds=seconds)
+    reason = "forced" if field.meta["training_length"]["forced"] else "length"
+    stopped = {"reason": reason, "iteration": steps, "length": cfg.iterations}
+    if steps < cfg.iterations and stop is not None:
+        stopped.update(reason="plateau", tolerance=stop.tolerance, terms=stop.evidence)
     field.meta.update(
         **run.strategy.record(),
         train_seconds=train_seconds,
-        iterations=cfg.iterations,
-        iterations_per_second=cfg.iterations / train_seconds if train_seconds > 0 else None,
+        iterations=steps,
+        stopped=stopped,
+        iterations_per_second=steps / train_seconds if train_seconds > 0 else None,
         num_gaussians=field.num_gaussians,
         loss_terms=log.entries(),
     )
@@ -204,6 +224,10 @@ class LossLog:
         )
         self._sums, self._counts, self._first = {}, {}, step + 1
 
+    def closed(self) -> list[dict[str, Any]]:
+        """The stretches closed so far (the one under way left out)."""
+        return self._entries
+
     def entries(self) -> list[dict[str, Any]]:
         """Every stretch, the last one closed at the last iteration added."""
         if self._counts:
@@ -249,8 +273,12 @@ def summary_line(field: LanguageField, test_psnr: float | None) -> str:
     """The one-line summary printed at the end of training."""
     m = field.meta
     ips = m.iterations_per_second
+    stop = m.get("stopped") or {}
+    done = f"{m.iterations or 0} iterations"
+    if stop.get("reason") == "plateau":
+        done = f"{m.iterations} of {stop['length']} iterations (the fit levelled off)"
     parts = [
-        f"trained {m.iterations or 0} iterations in {m.train_seconds or 0.0:.1f} s",
+        f"trained {done} in {m.train_seconds or 0.0:.1f} s",
         f"{ips:.1f} it/s" if ips else "",
         f"{field.num_gaussians} Gaussians",
         f"backend {m.backend}",
