@@ -265,9 +265,25 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     raster = result["curve"][-1]["raster"]
     assert raster["num_gaussians"] == result["curve"][-1]["num_gaussians"] and raster["pairs"] > 0
     assert raster["pairs_per_second"] == pytest.approx(raster["pairs"] / (raster["step_ms"] / 1000))
+    assert result["curve"][-1]["stopped"] == {"reason": "forced", "iteration": 20, "length": 20}
     printed = capsys.readouterr().out
     assert "faster than torch" in printed and "within 0.3 dB of the last point" in printed
     assert "Gaussian-pixel pairs" in printed and "iterations went: " in printed
+    assert "trained the forced length, 20 iterations" in printed
+
+
+def test_bench_says_why_training_stopped() -> None:
+    from langfield.eval.bench import format_stop
+
+    color = {"best_before": 0.0667, "best_recent": 0.06604, "gain": 0.0099}
+    plateau = {"reason": "plateau", "iteration": 1200, "length": 1500, "tolerance": 0.01}
+    plateau["terms"] = {"color": color}
+    text = format_stop(plateau)
+    assert text.startswith("stopped at 1200 of 1500 iterations") and "color 0.99 %" in text
+    assert "under 1 %" in text
+    assert format_stop({"reason": "length", "iteration": 1500, "length": 1500}) == (
+        "trained the scene's length, 1500 iterations"
+    )
 
 
 def test_time_to_quality_is_the_first_point_within_the_tolerance_of_the_last() -> None:
