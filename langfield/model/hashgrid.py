@@ -258,7 +258,7 @@ class HashGrid(nn.Module):
         if resolve_backend(self.backend) == "numba" and x.device.type == "cpu":
             # One kernel for both outputs; the tensor code below is its reference.
             notice_once()
-            new_rows, frac = CornersNumba.apply(x, self._layout())
+            new_rows, frac = CornersNumba.apply(x, self._layout(), rows is None)
             return (new_rows if rows is None else rows), frac
         # Axis-major [3, L, N] layout keeps N innermost, so every broadcast over corners or levels below
         # runs over long contiguous rows (3-4x faster on the CPU than the point-major [N, L, 3]).

@@ -134,14 +134,15 @@ def _backward(
 @njit(parallel=True, cache=True)
 def _corners(  # pragma: no cover - numba
     x, center, two_half, res, max_corner, strides, level_offset, n_dense, primes, mask, consts, rows, frac,
-    inside,
+    inside, write_rows,
 ):  # fmt: skip
     """Each point's cell at every level: rows [8, L, N] and frac [3, L, N], as HashGrid.corners.
 
     No fastmath: the float arithmetic is the reference's, operation for operation, so the cells (the
     floor of a product) are the same. ``consts`` holds 0.5, 0 and 1 in the positions' dtype (a float
     literal would widen float32 arithmetic to float64). ``inside[a, i]`` records whether the clamp into
-    the box left axis a alone, for the backward.
+    the box left axis a alone, for the backward. ``write_rows`` False: the caller has the rows (they
+    depend on the cells only) and ``rows`` is not touched.
     """
     n_levels = res.shape[0]
     half, zero, one = consts[0], consts[1], consts[2]
@@ -162,6 +163,8 @@ def _corners(  # pragma: no cover - numba
             frac[0, level, i] = p0 - x0
             frac[1, level, i] = p1 - y0
             frac[2, level, i] = p2 - z0
+            if not write_rows:
+                continue
             off = level_offset[level]
             for c in range(8):
                 cx, cy, cz = x0 + (c >> 2), y0 + ((c >> 1) & 1), z0 + (c & 1)
@@ -250,22 +253,23 @@ class CornersNumba(torch.autograd.Function):
     frac. The reference builds the same rows from broadcast tensors of all 8 corners (about 50 ms for
     50k Gaussians at 15 levels on 2 cores; this pass writes each row once).
 
-    ``grid``: a dict of the grid's layout as numpy arrays (:meth:`HashGrid._layout`).
+    ``grid``: a dict of the grid's layout as numpy arrays (:meth:`HashGrid._layout`); ``write_rows``
+    False: the caller has the rows already, and the rows returned are an empty [8, L, 0].
     """
 
     @staticmethod
-    def forward(ctx, x: Tensor, grid: dict) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+    def forward(ctx, x: Tensor, grid: dict, write_rows: bool = True) -> tuple[Tensor, Tensor]:  # type: ignore[override]
         xc = x.detach().contiguous()
         dt = xc.numpy().dtype
         n, n_levels = xc.shape[0], grid["res"].shape[0]
-        rows = torch.empty(8, n_levels, n, dtype=torch.int64)
+        rows = torch.empty(8, n_levels, n if write_rows else 0, dtype=torch.int64)
         frac = torch.empty(3, n_levels, n, dtype=xc.dtype)
         inside = np.empty((3, n), dtype=np.bool_)
         res, two_half = grid["res"].astype(dt), grid["two_half"].astype(dt)
         _corners(
             xc.numpy(), grid["center"].astype(dt), two_half, res, grid["max_corner"], grid["strides"],
             grid["level_offset"], grid["n_dense"], grid["primes"], grid["mask"],
-            np.array([0.5, 0.0, 1.0], dtype=dt), rows.numpy(), frac.numpy(), inside,
+            np.array([0.5, 0.0, 1.0], dtype=dt), rows.numpy(), frac.numpy(), inside, write_rows,
         )  # fmt: skip
         ctx.mark_non_differentiable(rows)
         ctx.set_materialize_grads(False)  # else autograd hands backward a zero [8, L, N] for the rows
@@ -273,11 +277,11 @@ class CornersNumba(torch.autograd.Function):
         return rows, frac
 
     @staticmethod
-    def backward(ctx, grad_rows: Tensor | None, grad_frac: Tensor | None) -> tuple[Tensor | None, None]:  # type: ignore[override]
+    def backward(ctx, grad_rows: Tensor | None, grad_frac: Tensor | None) -> tuple[Tensor | None, None, None]:  # type: ignore[override]
         if grad_frac is None:
-            return None, None
+            return None, None, None
         res, two_half, inside = ctx.saved
         g = grad_frac.contiguous().numpy()
         grad_x = torch.empty(g.shape[2], 3, dtype=grad_frac.dtype)
         _corners_backward(g, res.astype(g.dtype), two_half.astype(g.dtype), inside, grad_x.numpy())
-        return grad_x, None
+        return grad_x, None, None
