@@ -8,12 +8,15 @@ import sys
 
 import pytest
 
-# A 48 MB block allocated, filled and freed twice; prints the page faults of the second time.
+# A 48 MB block allocated, filled and freed four times; prints the page faults of the last time. The
+# second time can still miss (about 1 run in 5): a small block placed behind the first one leaves its
+# freed space a few bytes short of torch's aligned request, so the heap grows once more; from then on
+# a freed block of the size is at hand, as in a training loop's steady state.
 _PROBE = """
 import resource, torch
 from langfield.kernels import reuse_freed_memory
 print(reuse_freed_memory())
-for _ in range(2):
+for _ in range(4):
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     block = torch.ones(6_000_000, dtype=torch.float64)
     del block

@@ -26,9 +26,9 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from langfield.kernels import configure_numba_threads
+from langfield.kernels import configure_numba
 
-configure_numba_threads()
+configure_numba()
 
 
 @njit(inline="always")

@@ -11,10 +11,10 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from langfield.kernels import configure_numba_threads
+from langfield.kernels import configure_numba
 from langfield.raster.binning import ALPHA_MIN, Q_MARGIN, TILE_SIZE
 
-configure_numba_threads()
+configure_numba()
 
 
 @njit(inline="always")

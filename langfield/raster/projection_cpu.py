@@ -29,10 +29,10 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from langfield.kernels import configure_numba_threads
+from langfield.kernels import configure_numba
 from langfield.raster.projection import EPS_2D, NEAR_PLANE, QUAT_NORM2_MIN, Projected, tangent_limits
 
-configure_numba_threads()
+configure_numba()
 
 
 @njit(inline="always")
@@ -245,7 +245,7 @@ class _ProjectCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, w2c, intrinsics, width, height, near, eps2d):
         # numpy, not torch, for the conversions: a torch op right after a numba kernel waits for its
-        # threads to wake (see configure_numba_threads).
+        # threads to wake (see configure_numba).
         m = means.detach().numpy().astype(np.float64)
         q = quats.detach().numpy().astype(np.float64)
         s = scales.detach().numpy().astype(np.float64)

@@ -258,7 +258,11 @@ def test_numba_corners_match_the_reference(cfg, dtype) -> None:
     assert torch.equal(rows, rows_ref)
     tol = {"atol": 1e-5, "rtol": 1e-5} if dtype == torch.float32 else {"atol": 1e-12, "rtol": 1e-12}
     torch.testing.assert_close(frac, frac_ref, **tol)
-    torch.testing.assert_close(grad, grad_ref, **tol)
+    # The gradient sums one term per level, each up to |upstream| x the level's resolution (300 at the
+    # finest), in an order of the compiler's choosing: float32 keeps a few ulps of the largest term.
+    largest = (upstream.abs().amax() * max(cfg.resolutions())).item()
+    atol = max(tol["atol"], 4e-7 * largest) if dtype == torch.float32 else tol["atol"]
+    torch.testing.assert_close(grad, grad_ref, atol=atol, rtol=tol["rtol"])
     assert (grad[-1, :2] == 0).all()  # clamped axes pass no gradient
     given, frac_given = grid.corners(x, rows)  # rows from an earlier call: handed back, frac computed
     assert given is rows and torch.equal(frac_given, frac)
