@@ -235,29 +235,54 @@ def test_detached_channels_pass_no_gradient_to_geometry(small_camera):
         assert torch.count_nonzero(leaves[4].grad[:, :2]) == 0
 
 
-def test_row_skip_is_exact_against_a_dense_scan():
-    # The CPU kernels skip a (Gaussian, tile row) when q exceeds the bound over the whole row segment;
-    # a dense scan of the segment must agree wherever the bound is not within rounding of the minimum.
+def test_row_span_holds_every_row_a_dense_scan_reaches():
+    # The CPU kernels evaluate a Gaussian on a tile's rows [r0, r1) only: a dense scan of each row's
+    # segment must find q above the bound on every row outside, and the span must not run more than a
+    # row past the rows the scan reaches (it is widened by rounding margins only).
     import numpy as np
 
-    from langfield.raster.composite_cpu import _row_misses
+    from langfield.raster.binning import TILE_SIZE
+    from langfield.raster.composite_cpu import _row_span
 
     rng = np.random.default_rng(0)
-    checked = 0
+    f = np.float32
+    checked = extra = 0
     for _ in range(3000):
         a, c = rng.uniform(0.001, 2.0, 2)
-        b = rng.uniform(-0.999, 0.999) * np.sqrt(a * c)  # positive definite
-        dy, lo = rng.uniform(-30, 30, 2)
-        hi = lo + 15.0
-        bound = rng.uniform(0.5, 12.0)
-        xs = np.linspace(lo, hi, 20001)
-        q_min = (a * xs * xs + 2 * b * xs * dy + c * dy * dy).min()
-        if abs(q_min - bound) < 1e-3 * bound:
-            continue
-        f = np.float32
-        assert _row_misses(f(a), f(b), f(c), f(dy), f(lo), f(hi), f(bound)) == (q_min > bound)
-        checked += 1
-    assert checked > 2500
+        b = rng.uniform(-0.999, 0.999) * np.sqrt(a * c) if rng.random() > 0.1 else 0.0  # positive definite
+        a, b, c = f(a), f(b), f(c)
+        lo = f(rng.uniform(-30, 30))
+        hi, dy0, bound = lo + f(15.0), f(rng.uniform(-40, 25)), f(rng.uniform(0.5, 12.0))
+        r0, r1 = _row_span(a, b, c, lo, hi, bound, dy0)
+        assert 0 <= r0 <= r1 <= TILE_SIZE
+        xs = np.linspace(lo, hi, 4001, dtype=np.float64)
+        for r in range(TILE_SIZE):
+            dy = float(dy0) + r
+            q_min = (float(a) * xs * xs + 2 * float(b) * xs * dy + float(c) * dy * dy).min()
+            if q_min <= bound:
+                assert r0 <= r < r1, (a, b, c, lo, dy0, bound, r, r0, r1)
+                checked += 1
+            elif r0 <= r < r1:
+                extra += 1
+    assert checked > 1500
+    assert extra < 0.05 * checked  # the span is the reached rows plus rounding, not the whole tile
+
+
+@pytest.mark.parametrize(
+    "conic, bound, expected",
+    [
+        ((1.0, 0.0, 1.0), -1.0, (0, 0)),  # a Gaussian too faint to reach 1/255 anywhere
+        ((1.0, 1.0, 1.0), 9.0, (0, 16)),  # degenerate (det 0): every row is evaluated
+        ((1.0, 0.0, 0.0), 9.0, (0, 16)),  # no extent in y
+        ((1e-8, 0.0, 1e-8), 9.0, (0, 16)),  # huge: reaches every row
+        ((1e8, 0.0, 1e8), 9.0, (4, 5)),  # a point on row 4 (dy0 = -4.0)
+    ],
+)
+def test_row_span_edge_cases(conic, bound, expected):
+    from langfield.raster.composite_cpu import _row_span
+
+    a, b, c = conic
+    assert _row_span(a, b, c, -2.0, 13.0, bound, -4.0) == expected
 
 
 def _two_passes(backend: str, params, camera, second_opacities, seed: int = 2):
