@@ -14,7 +14,8 @@ each watched term, the best of the last ``PATIENCE`` stretches is within ``stop_
 of the best before them, and at least ``MIN_BEFORE`` full-size stretches came before those.
 
 On LLFF fern (defaults, 1500 iterations) the colour term's means fall 3.5 % between the stretches
-800-999 and those before, 1.2 % at 1000-1199, 0.45 % at 1100-1299: a 1 % plateau stops at 1300.
+800-999 and those before, 1.2 % at 1000-1199, 0.45 % at 1100-1299 (one run; see docs/decisions.md,
+``stop_plateau``, for where runs stop at 1 % and 0.5 %).
 """
 
 from __future__ import annotations
