@@ -12,9 +12,11 @@ Same arithmetic as :mod:`langfield.raster.composite` (the oracle), arranged for 
   ``exp(x) = (p(x / 16))^16`` with a degree-7 Taylor ``p`` is accurate to ~1e-7 and needs no SVML;
 - the backward walks each pixel's list front to back again and recomputes the transmittance, rather
   than dividing the final transmittance by (1 - alpha) from the back; what lies behind Gaussian i is
-  ``C - prefix_i``, known from the forward output;
-- gradients are written per (tile, Gaussian) intersection and then summed per Gaussian, one column
-  per thread in a fixed order: no two threads write the same memory, so results are deterministic.
+  ``C - prefix_i``, known from the forward output, and the channels enter d alpha only through the
+  dot product of their upstream gradient with the colour (:func:`_channels_row`);
+- gradients are written per (tile, Gaussian) intersection and then summed per Gaussian, each thread
+  owning a range of Gaussians and adding in list order: no two threads write the same memory, so
+  results are deterministic.
 
 Projection and binning run in numba too (:mod:`langfield.raster.projection_cpu`,
 :mod:`langfield.raster.binning_cpu`).
@@ -55,6 +57,12 @@ _ROW_MARGIN = _F(1.001)
 # (with SLP vectorisation on, langfield.kernels.configure_numba); fern's forward took 97 ms with
 # separate arrays and 29 ms so (504x378, 24k Gaussians, 13 channels).
 _TRANS, _LIVE, _WEIGHT, _LAST, _XS, _GAUSS, _TRANS_H, _LIVE_H, _LAST_H, _ACC_H, _F_ROWS = range(11)
+# The backward's per-pixel state, likewise rows of one [_B_ROWS + channels, 16] array per tile: the
+# first stream's (_B_), the second stream's (_H_), then the upstream gradient of each channel.
+(_B_TRANS, _B_END, _B_GA, _B_WEIGHT, _B_DALPHA, _B_INV, _B_GAUSS, _B_HIT, _B_LAST, _B_XS, _B_QOK, _B_DOT,
+ _B_SEEN, _B_BEHIND, _H_TRANS, _H_END, _H_GA, _H_GC, _H_TOTAL, _H_PREFIX, _H_LAST, _H_HIT, _H_WEIGHT,
+ _H_INV, _H_DALPHA, _B_ROWS) = range(26)  # fmt: skip
+_G_CH = 16  # channels a row of the backward's pixel-major upstream gradients holds
 
 
 @njit(inline="always", fastmath=True)
@@ -120,13 +128,16 @@ def _row_span(a, b, c, lo, hi, q_bound, dy0):
 
 
 @njit(inline="always")
-def _add_footprint_grads(k, g_means2d, g_conics, g_opac, gm_x, gm_y, gca, gcb, gcc, gop):
-    """Intersection k's gradients of its centre, conic and opacity, added to a pass's arrays."""
-    g_means2d[k, 0] += gm_x
-    g_means2d[k, 1] += gm_y
-    g_conics[k, 0] += gca
-    g_conics[k, 1] += gcb
-    g_conics[k, 2] += gcc
+def _add_row_grads(k, g_means2d, g_conics, g_opac, ca, cb, cc, dy, q0, q1, q2, gop):
+    """Intersection k's gradients of its centre, conic and opacity from one tile row, added to a
+    pass's arrays. On a row dy is one value, so with g_q = dL/dq at each pixel (q = a dx^2 + 2 b dx dy
+    + c dy^2) the six sums the chain rule needs come from three: q0 = sum g_q, q1 = sum g_q dx and
+    q2 = sum g_q dx^2 (dq/da = dx^2, dq/db = 2 dx dy, dq/dc = dy^2, dq/dmean = -dq/d(dx, dy))."""
+    g_means2d[k, 0] -= _F(2.0) * (ca * q1 + cb * dy * q0)
+    g_means2d[k, 1] -= _F(2.0) * (cb * q1 + cc * dy * q0)
+    g_conics[k, 0] += q2
+    g_conics[k, 1] += _F(2.0) * dy * q1
+    g_conics[k, 2] += dy * dy * q0
     g_opac[k] += gop
 
 
@@ -311,6 +322,138 @@ def _forward(
                             n_contrib_h[y, x] = np.int32(start + np.int64(s[_LAST_H, p]))
 
 
+@njit(inline="always", fastmath=True)
+def _footprint_row(s, j, mx, my, ca, cb, cc, o, py, miss):
+    """Gaussian j's footprint on a tile row (rows _B_GAUSS, _B_QOK) and, unless the first stream
+    misses the row, its alpha's hits, weights, 1 / (1 - alpha) and d alpha from the alpha output.
+    Returns the first stream's number of hits."""
+    dy = py - my
+    kf = _F(j)
+    n_hit = _ZERO
+    if miss:  # only the second stream reaches this row: the footprint alone
+        for p in range(TILE_SIZE):
+            dx = s[_B_XS, p] - mx
+            q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+            s[_B_GAUSS, p] = _exp_neg(-_HALF * q)
+            s[_B_QOK, p] = _F(q >= _ZERO)
+        return n_hit
+    # Branch-free over the row's 16 pixels (as the forward), so LLVM vectorises it.
+    for p in range(TILE_SIZE):
+        dx = s[_B_XS, p] - mx
+        q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
+        gauss = _exp_neg(-_HALF * q)
+        s[_B_GAUSS, p] = gauss
+        s[_B_QOK, p] = _F(q >= _ZERO)
+        alpha = min(_ALPHA_MAX, o * gauss)
+        hit = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO) & (kf < s[_B_LAST, p]))
+        s[_B_HIT, p] = hit
+        s[_B_WEIGHT, p] = hit * alpha * s[_B_TRANS, p]
+        s[_B_INV, p] = _ONE / (_ONE - alpha)
+        # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
+        s[_B_DALPHA, p] = hit * (s[_B_GA, p] * s[_B_END, p] * s[_B_INV, p])
+        n_hit += hit
+    return n_hit
+
+
+@njit(inline="always", fastmath=True)
+def _channels_row(s, g_px, gcol, j, k, n_geo, n_ch, n_chunk, g_colors):
+    """Gaussian j's colour gradient on a tile row (to intersection k), and its channels' part of
+    d alpha. Per pixel, with g the upstream gradient, c_i the colours, C the pixel's output:
+
+        sum_ch g (c_i T_i - (C - prefix_i) / (1 - alpha_i))
+            = (g . c_i) T_i - (g . C - sum_{j <= i} w_j (g . c_j)) / (1 - alpha_i),
+
+    so the channels meet only in the dot g . c_i (_B_DOT), one multiply-add per channel and pixel; the
+    running sum (_B_SEEN) and g . C (_B_BEHIND) are one row each. The colour gradient, the sum over
+    the row's pixels of weight x g, runs over the channels in g_px (pixel-major) instead: one
+    vector multiply-add per pixel, not a 16-pixel sum per channel."""
+    for p in range(TILE_SIZE):
+        s[_B_DOT, p] = _ZERO
+    for ch in range(n_geo):  # channels from n_geo on pass no gradient to the geometry
+        col = gcol[j, ch]
+        for p in range(TILE_SIZE):
+            s[_B_DOT, p] += s[_B_ROWS + ch, p] * col
+    for p in range(TILE_SIZE):
+        s[_B_SEEN, p] += s[_B_WEIGHT, p] * s[_B_DOT, p]
+        d = s[_B_DOT, p] * s[_B_TRANS, p] - (s[_B_BEHIND, p] - s[_B_SEEN, p]) * s[_B_INV, p]
+        s[_B_DALPHA, p] += s[_B_HIT, p] * d
+    for c in range(n_chunk):
+        b = c * (TILE_SIZE + 1)
+        acc = b + TILE_SIZE
+        for q in range(_G_CH):
+            g_px[acc, q] = _ZERO
+        for p in range(TILE_SIZE):
+            w = s[_B_WEIGHT, p]
+            for q in range(_G_CH):
+                g_px[acc, q] += w * g_px[b + p, q]
+        for q in range(min(_G_CH, n_ch - c * _G_CH)):
+            g_colors[k, c * _G_CH + q] += g_px[acc, q]
+
+
+@njit(inline="always", fastmath=True)
+def _geometry_row(s, k, mx, my, ca, cb, cc, o, py, g_means2d, g_conics, g_opac):
+    """The first stream's gradients of intersection k's centre, conic and opacity from a tile row's
+    d alpha; then the row's transmittance moves past the Gaussian."""
+    gop = _ZERO
+    q0 = _ZERO
+    q1 = _ZERO
+    q2 = _ZERO
+    for p in range(TILE_SIZE):
+        hit = s[_B_HIT, p]
+        dx = s[_B_XS, p] - mx
+        gauss = s[_B_GAUSS, p]
+        raw = o * gauss
+        s[_B_TRANS, p] = s[_B_TRANS, p] * (_ONE - hit * min(_ALPHA_MAX, raw))
+        # a clamped alpha passes no gradient
+        da = s[_B_DALPHA, p] * _F(raw < _ALPHA_MAX)
+        gop += da * gauss
+        g_q = -_HALF * raw * da
+        q0 += g_q
+        q1 += g_q * dx
+        q2 += g_q * dx * dx
+    _add_row_grads(k, g_means2d, g_conics, g_opac, ca, cb, cc, py - my, q0, q1, q2, gop)
+
+
+@njit(inline="always", fastmath=True)
+def _second_stream_row(s, k, j, mx, my, ca, cb, cc, oh, val, py, g_means2d, g_conics, g_opac, g_values):
+    """The second stream on a tile row: same footprint (_B_GAUSS, from _footprint_row), its own
+    opacity, one channel, every gradient its own (to intersection k of the _h arrays)."""
+    kf = _F(j)
+    n_hit_h = _ZERO
+    for p in range(TILE_SIZE):
+        alpha = min(_ALPHA_MAX, oh * s[_B_GAUSS, p])
+        hit = _F((alpha >= _ALPHA_MIN) & (kf < s[_H_LAST, p])) * s[_B_QOK, p]
+        s[_H_HIT, p] = hit
+        s[_H_WEIGHT, p] = hit * alpha * s[_H_TRANS, p]
+        s[_H_INV, p] = _ONE / (_ONE - alpha)
+        s[_H_DALPHA, p] = hit * (s[_H_GA, p] * s[_H_END, p] * s[_H_INV, p])
+        n_hit_h += hit
+    if n_hit_h == _ZERO:
+        return
+    g_val = _ZERO
+    gop = _ZERO
+    q0 = _ZERO
+    q1 = _ZERO
+    q2 = _ZERO
+    for p in range(TILE_SIZE):
+        w = s[_H_WEIGHT, p]
+        g_val += w * s[_H_GC, p]
+        s[_H_PREFIX, p] += w * val
+        d = val * s[_H_TRANS, p] - (s[_H_TOTAL, p] - s[_H_PREFIX, p]) * s[_H_INV, p]
+        hit = s[_H_HIT, p]
+        raw = oh * s[_B_GAUSS, p]
+        da = (s[_H_DALPHA, p] + hit * (s[_H_GC, p] * d)) * _F(raw < _ALPHA_MAX)
+        s[_H_TRANS, p] = s[_H_TRANS, p] * (_ONE - hit * min(_ALPHA_MAX, raw))
+        dx = s[_B_XS, p] - mx
+        gop += da * s[_B_GAUSS, p]
+        g_q = -_HALF * raw * da
+        q0 += g_q
+        q1 += g_q * dx
+        q2 += g_q * dx * dx
+    g_values[k, 0] += g_val
+    _add_row_grads(k, g_means2d, g_conics, g_opac, ca, cb, cc, py - my, q0, q1, q2, gop)
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _backward(
     offsets,
@@ -349,6 +492,7 @@ def _backward(
     g_values_h,
 ):
     n_ch = colors.shape[1]
+    n_chunk = (n_ch + _G_CH - 1) // _G_CH
     pair = opac_h.shape[0] > 0
     # Each worker takes a precomputed, balanced set of tiles (see _balance): prange splits its range
     # statically, and the tiles' work differs by 2x across an image.
@@ -360,35 +504,12 @@ def _backward(
             y0 = (tile // tiles_x) * TILE_SIZE
             x_lo = _F(x0) + _HALF  # the tile's first and last pixel centres in x
             x_hi = _F(min(x0 + TILE_SIZE, width) - 1) + _HALF
-            trans = np.empty(TILE_SIZE, np.float32)
-            t_end = np.empty(TILE_SIZE, np.float32)
-            g_a = np.empty(TILE_SIZE, np.float32)
+            s = np.empty((_B_ROWS + n_ch, TILE_SIZE), np.float32)
+            # The upstream gradients pixel-major, _G_CH channels a row, then the colour gradient's sums.
+            g_px = np.zeros((n_chunk * (TILE_SIZE + 1), _G_CH), np.float32)
             last = np.empty(TILE_SIZE, np.int32)
-            weight = np.empty(TILE_SIZE, np.float32)
-            d_alpha = np.empty(TILE_SIZE, np.float32)
-            inv_1m = np.empty(TILE_SIZE, np.float32)
-            gauss_px = np.empty(TILE_SIZE, np.float32)
-            prefix = np.empty((n_ch, TILE_SIZE), np.float32)
-            total = np.empty((n_ch, TILE_SIZE), np.float32)
-            g_c = np.empty((n_ch, TILE_SIZE), np.float32)
-            hits = np.empty(TILE_SIZE, np.float32)
-            lastf = np.empty(TILE_SIZE, np.float32)
-            xs = np.empty(TILE_SIZE, np.float32)
-            q_ok = np.empty(TILE_SIZE, np.float32)
-            # The second stream's per-pixel state (one channel).
-            trans_h = np.empty(TILE_SIZE, np.float32)
-            t_end_h = np.empty(TILE_SIZE, np.float32)
-            g_a_h = np.empty(TILE_SIZE, np.float32)
-            g_c_h = np.empty(TILE_SIZE, np.float32)
-            total_h = np.empty(TILE_SIZE, np.float32)
-            prefix_h = np.empty(TILE_SIZE, np.float32)
-            lastf_h = np.empty(TILE_SIZE, np.float32)
-            hits_h = np.empty(TILE_SIZE, np.float32)
-            weight_h = np.empty(TILE_SIZE, np.float32)
-            inv_h = np.empty(TILE_SIZE, np.float32)
-            d_alpha_h = np.empty(TILE_SIZE, np.float32)
             for p in range(TILE_SIZE):
-                xs[p] = _F(x0 + p) + _HALF
+                s[_B_XS, p] = _F(x0 + p) + _HALF
             # The tile's Gaussians up to its last contributor (of either stream).
             tile_last = start
             for r in range(min(TILE_SIZE, height - y0)):
@@ -410,160 +531,52 @@ def _backward(
                 row_last = 0
                 for p in range(TILE_SIZE):
                     x = x0 + p
-                    if x < width:
-                        last[p] = n_contrib[y, x]
-                        t_end[p] = t_final[y, x]
-                        g_a[p] = grad_alpha[y, x]
-                        for ch in range(n_ch):
-                            total[ch, p] = out[y, x, ch]
-                            g_c[ch, p] = grad_out[y, x, ch]
-                    else:
-                        last[p] = 0
-                        t_end[p] = _ONE
-                        g_a[p] = _ZERO
-                        for ch in range(n_ch):
-                            total[ch, p] = _ZERO
-                            g_c[ch, p] = _ZERO
+                    inside = x < width
+                    last[p] = n_contrib[y, x] if inside else 0
+                    s[_B_END, p] = t_final[y, x] if inside else _ONE
+                    s[_B_GA, p] = grad_alpha[y, x] if inside else _ZERO
+                    behind = _ZERO
+                    for ch in range(n_ch):
+                        g = grad_out[y, x, ch] if inside else _ZERO
+                        s[_B_ROWS + ch, p] = g
+                        g_px[(ch // _G_CH) * (TILE_SIZE + 1) + p, ch % _G_CH] = g
+                        if ch < n_geo and inside:
+                            behind += g * out[y, x, ch]
+                    s[_B_BEHIND, p] = behind
+                    s[_B_SEEN, p] = _ZERO
                     row_last = max(row_last, last[p])
-                    lastf[p] = _F(max(last[p] - start, 0))
-                    trans[p] = _ONE
-                    trans_h[p] = _ONE
-                    prefix_h[p] = _ZERO
-                    lastf_h[p] = _ZERO
-                    if pair and x0 + p < width:
-                        last_h = n_contrib_h[y, x0 + p]
+                    s[_B_LAST, p] = _F(max(last[p] - start, 0))
+                    s[_B_TRANS, p] = _ONE
+                    s[_H_TRANS, p] = _ONE
+                    s[_H_PREFIX, p] = _ZERO
+                    s[_H_LAST, p] = _ZERO
+                    if pair and inside:
+                        last_h = n_contrib_h[y, x]
                         row_last = max(row_last, last_h)
-                        lastf_h[p] = _F(max(last_h - start, 0))
-                        t_end_h[p] = t_final_h[y, x0 + p]
-                        g_a_h[p] = grad_alpha_h[y, x0 + p]
-                        total_h[p] = out_h[y, x0 + p, 0]
-                        g_c_h[p] = grad_out_h[y, x0 + p, 0]
-                    else:
-                        t_end_h[p] = _ONE
-                        g_a_h[p] = _ZERO
-                        total_h[p] = _ZERO
-                        g_c_h[p] = _ZERO
-                prefix[:, :] = _ZERO
+                        s[_H_LAST, p] = _F(max(last_h - start, 0))
+                    s[_H_END, p] = t_final_h[y, x] if pair and inside else _ONE
+                    s[_H_GA, p] = grad_alpha_h[y, x] if pair and inside else _ZERO
+                    s[_H_TOTAL, p] = out_h[y, x, 0] if pair and inside else _ZERO
+                    s[_H_GC, p] = grad_out_h[y, x, 0] if pair and inside else _ZERO
                 py = _F(y) + _HALF
                 for k in range(start, row_last):
                     j = k - start
-                    ca, cb, cc = ga[j], gb[j], gc[j]
-                    mx, my = gx[j], gy[j]
-                    dy = py - my
                     miss = r < span[j, 0] or r >= span[j, 1]
                     miss_h = not pair or r < span_h[j, 0] or r >= span_h[j, 1]
                     if miss and miss_h:
                         continue
-                    o = go[j]
-                    n_hit = _ZERO
-                    kf = _F(j)
-                    if miss:  # only the second stream reaches this row: the footprint alone
-                        for p in range(TILE_SIZE):
-                            dx = xs[p] - mx
-                            q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
-                            gauss_px[p] = _exp_neg(-_HALF * q)
-                            q_ok[p] = _F(q >= _ZERO)
-                    else:
-                        # Branch-free over the row's 16 pixels (as the forward), so LLVM vectorises it.
-                        for p in range(TILE_SIZE):
-                            dx = xs[p] - mx
-                            q = ca * dx * dx + _F(2.0) * cb * dx * dy + cc * dy * dy
-                            gauss = _exp_neg(-_HALF * q)
-                            raw = o * gauss
-                            gauss_px[p] = gauss
-                            q_ok[p] = _F(q >= _ZERO)
-                            alpha = min(_ALPHA_MAX, raw)
-                            hit = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO) & (kf < lastf[p]))
-                            hits[p] = hit
-                            weight[p] = hit * alpha * trans[p]
-                            inv_1m[p] = _ONE / (_ONE - alpha)
-                            # d alpha_out / d alpha_i = T_final / (1 - alpha_i)
-                            d_alpha[p] = hit * (g_a[p] * t_end[p] * inv_1m[p])
-                            n_hit += hit
+                    n_hit = _footprint_row(s, j, gx[j], gy[j], ga[j], gb[j], gc[j], go[j], py, miss)
                     if not miss_h:
-                        # The second stream: same footprint (gauss_px), its own opacity, one channel,
-                        # every gradient its own (written to the _h arrays).
-                        oh = goh[j]
-                        val = gvh[j]
-                        n_hit_h = _ZERO
-                        for p in range(TILE_SIZE):
-                            alpha = min(_ALPHA_MAX, oh * gauss_px[p])
-                            hit = _F((alpha >= _ALPHA_MIN) & (kf < lastf_h[p])) * q_ok[p]
-                            hits_h[p] = hit
-                            weight_h[p] = hit * alpha * trans_h[p]
-                            inv_h[p] = _ONE / (_ONE - alpha)
-                            d_alpha_h[p] = hit * (g_a_h[p] * t_end_h[p] * inv_h[p])
-                            n_hit_h += hit
-                        if n_hit_h > _ZERO:
-                            s = _ZERO
-                            gm_x = _ZERO
-                            gm_y = _ZERO
-                            gca = _ZERO
-                            gcb = _ZERO
-                            gcc = _ZERO
-                            gop = _ZERO
-                            for p in range(TILE_SIZE):
-                                w = weight_h[p]
-                                s += w * g_c_h[p]
-                                prefix_h[p] += w * val
-                                d = val * trans_h[p] - (total_h[p] - prefix_h[p]) * inv_h[p]
-                                hit = hits_h[p]
-                                raw = oh * gauss_px[p]
-                                da = (d_alpha_h[p] + hit * (g_c_h[p] * d)) * _F(raw < _ALPHA_MAX)
-                                trans_h[p] = trans_h[p] * (_ONE - hit * min(_ALPHA_MAX, raw))
-                                dx = xs[p] - mx
-                                gop += da * gauss_px[p]
-                                g_q = -_HALF * raw * da
-                                gca += g_q * dx * dx
-                                gcb += g_q * _F(2.0) * dx * dy
-                                gcc += g_q * dy * dy
-                                gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
-                                gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
-                            g_values_h[k, 0] += s
-                            _add_footprint_grads(
-                                k, g_means2d_h, g_conics_h, g_opac_h, gm_x, gm_y, gca, gcb, gcc, gop
-                            )
+                        _second_stream_row(
+                            s, k, j, gx[j], gy[j], ga[j], gb[j], gc[j], goh[j], gvh[j], py,
+                            g_means2d_h, g_conics_h, g_opac_h, g_values_h,
+                        )  # fmt: skip
                     if n_hit == _ZERO:
                         continue
-                    for ch in range(n_geo):
-                        col = gcol[j, ch]
-                        s = _ZERO
-                        for p in range(TILE_SIZE):
-                            w = weight[p]
-                            s += w * g_c[ch, p]
-                            prefix[ch, p] += w * col
-                            # dC/d alpha_i = c_i T_i - (C - prefix_i) / (1 - alpha_i)
-                            d = col * trans[p] - (total[ch, p] - prefix[ch, p]) * inv_1m[p]
-                            d_alpha[p] += hits[p] * (g_c[ch, p] * d)
-                        g_colors[k, ch] += s
-                    # Channels from n_geo on pass no gradient to the geometry: only their own values'.
-                    for ch in range(n_geo, n_ch):
-                        s = _ZERO
-                        for p in range(TILE_SIZE):
-                            s += weight[p] * g_c[ch, p]
-                        g_colors[k, ch] += s
-                    gm_x = _ZERO
-                    gm_y = _ZERO
-                    gca = _ZERO
-                    gcb = _ZERO
-                    gcc = _ZERO
-                    gop = _ZERO
-                    for p in range(TILE_SIZE):
-                        hit = hits[p]
-                        dx = xs[p] - mx
-                        gauss = gauss_px[p]
-                        raw = o * gauss
-                        trans[p] = trans[p] * (_ONE - hit * min(_ALPHA_MAX, raw))
-                        # a clamped alpha passes no gradient
-                        da = d_alpha[p] * _F(raw < _ALPHA_MAX)
-                        gop += da * gauss
-                        g_q = -_HALF * raw * da
-                        gca += g_q * dx * dx
-                        gcb += g_q * _F(2.0) * dx * dy
-                        gcc += g_q * dy * dy
-                        gm_x -= g_q * (_F(2.0) * ca * dx + _F(2.0) * cb * dy)
-                        gm_y -= g_q * (_F(2.0) * cb * dx + _F(2.0) * cc * dy)
-                    _add_footprint_grads(k, g_means2d, g_conics, g_opac, gm_x, gm_y, gca, gcb, gcc, gop)
+                    _channels_row(s, g_px, gcol, j, k, n_geo, n_ch, n_chunk, g_colors)
+                    _geometry_row(
+                        s, k, gx[j], gy[j], ga[j], gb[j], gc[j], go[j], py, g_means2d, g_conics, g_opac
+                    )
 
 
 @njit(cache=True)
@@ -594,23 +607,30 @@ def _balance(offsets, n_workers):
 
 
 @njit(parallel=True, cache=True)
-def _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col):
-    """Per-intersection gradients summed per Gaussian: one column per thread, in intersection order.
+def _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col, n_parts):
+    """Per-intersection gradients summed per Gaussian. Part w of ``n_parts`` (one per thread) owns a
+    contiguous range of Gaussians and walks every intersection, adding those of its own ones.
 
-    Each column has one writer and a fixed summation order, so the result is deterministic.
+    Each Gaussian has one writer and its intersections are added in list order whatever the number of
+    parts, so the result is deterministic. (One column per thread instead re-read the list 19 times
+    and wrote scattered single floats: 3-6 ms against about 1 ms on fern.)
     """
+    n = s_op.shape[0]
     n_ch = g_col.shape[1]
-    for j in prange(6 + n_ch):
+    for w in prange(n_parts):
+        lo = n * w // n_parts
+        hi = n * (w + 1) // n_parts
         for k in range(ids.shape[0]):
             g = ids[k]
-            if j < 2:
-                s_m[g, j] += g_m[k, j]
-            elif j < 5:
-                s_cn[g, j - 2] += g_cn[k, j - 2]
-            elif j == 5:
-                s_op[g] += g_op[k]
-            else:
-                s_col[g, j - 6] += g_col[k, j - 6]
+            if g < lo or g >= hi:
+                continue
+            s_m[g, 0] += g_m[k, 0]
+            s_m[g, 1] += g_m[k, 1]
+            for c in range(3):
+                s_cn[g, c] += g_cn[k, c]
+            s_op[g] += g_op[k]
+            for c in range(n_ch):
+                s_col[g, c] += g_col[k, c]
 
 
 def _q_max(opacities: np.ndarray) -> np.ndarray:
@@ -724,7 +744,7 @@ def _summed(ids, n, g_m, g_cn, g_op, g_col) -> list[Tensor]:
     """Per-intersection gradients summed per Gaussian (deterministically, see _scatter_sum)."""
     s_m, s_cn, s_op, s_col = (np.zeros((n, 2), np.float32), np.zeros((n, 3), np.float32),
                               np.zeros(n, np.float32), np.zeros((n, g_col.shape[1]), np.float32))  # fmt: skip
-    _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col)
+    _scatter_sum(ids, g_m, g_cn, g_op, g_col, s_m, s_cn, s_op, s_col, max(1, numba.get_num_threads()))
     return [torch.from_numpy(a) for a in (s_m, s_cn, s_op, s_col)]
 
 

@@ -53,6 +53,13 @@ def test_backends_agree_on_random_scenes(small_camera, seed):
     assert_backends_agree(params, small_camera, background=torch.rand(5))
 
 
+@pytest.mark.parametrize("channels", [1, 16, 17, 40])
+def test_backends_agree_for_any_channel_count(small_camera, channels):
+    # The fast backward holds the upstream gradients 16 channels a row: one row, a full one, and more.
+    params = random_gaussians(120, channels, seed=channels)
+    assert_backends_agree(params, small_camera, background=torch.rand(channels))
+
+
 def test_backends_agree_with_large_opaque_gaussians(small_camera):
     params = random_gaussians(60, 3, seed=3, log_scale=-1.5)
     params[3] = torch.full_like(params[3], 0.995)  # many alphas hit the 0.99 clamp and saturate pixels
