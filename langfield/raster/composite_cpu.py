@@ -142,6 +142,21 @@ def _add_row_grads(k, g_means2d, g_conics, g_opac, ca, cb, cc, dy, q0, q1, q2, g
 
 
 @njit(inline="always")
+def _zero_rows(lo, hi, g_means2d, g_conics, g_opac, g_values):
+    """Intersections lo..hi-1's gradient rows set to zero. Each intersection belongs to one tile, so
+    the tile's worker clears its own rows (in parallel, just before it adds to them), rather than the
+    caller clearing all of them in one thread first (12 MB on fern, 2-3 ms)."""
+    for k in range(lo, hi):
+        g_means2d[k, 0] = _ZERO
+        g_means2d[k, 1] = _ZERO
+        for c in range(3):
+            g_conics[k, c] = _ZERO
+        g_opac[k] = _ZERO
+        for c in range(g_values.shape[1]):
+            g_values[k, c] = _ZERO
+
+
+@njit(inline="always")
 def _gather_tile(gids, start, m, means2d, conics, opac, q_max, colors, x_lo, x_hi, y0):
     """The m Gaussians listed from `start`, gathered once into contiguous arrays: a tile's 16 rows
     each walk them again. The rows each Gaussian can reach in this tile (x from x_lo to x_hi, rows
@@ -500,6 +515,9 @@ def _backward(
         for ti in range(worker_starts[w], worker_starts[w + 1]):
             tile = tile_order[ti]
             start = offsets[tile]  # the row loop stops at the last contributing Gaussian, before the end
+            _zero_rows(start, offsets[tile + 1], g_means2d, g_conics, g_opac, g_colors)
+            if pair:
+                _zero_rows(start, offsets[tile + 1], g_means2d_h, g_conics_h, g_opac_h, g_values_h)
             x0 = (tile % tiles_x) * TILE_SIZE
             y0 = (tile // tiles_x) * TILE_SIZE
             x_lo = _F(x0) + _HALF  # the tile's first and last pixel centres in x
@@ -725,10 +743,11 @@ class _RasterizeCPU(torch.autograd.Function):
         go, ga = upstream(grad_image, out), upstream(grad_alpha, t_final)
         go_h, ga_h = upstream(grad_image_h, out_h), upstream(grad_alpha_h, t_final_h)
         k = n_isect if pair else 0
-        g_m, g_cn = np.zeros((n_isect, 2), np.float32), np.zeros((n_isect, 3), np.float32)
-        g_op, g_col = np.zeros(n_isect, np.float32), np.zeros((n_isect, n_ch), np.float32)
-        g_m_h, g_cn_h = np.zeros((k, 2), np.float32), np.zeros((k, 3), np.float32)
-        g_op_h, g_val_h = np.zeros(k, np.float32), np.zeros((k, 1), np.float32)
+        # Not cleared here: each tile's worker clears its own intersections' rows (_zero_rows).
+        g_m, g_cn = np.empty((n_isect, 2), np.float32), np.empty((n_isect, 3), np.float32)
+        g_op, g_col = np.empty(n_isect, np.float32), np.empty((n_isect, n_ch), np.float32)
+        g_m_h, g_cn_h = np.empty((k, 2), np.float32), np.empty((k, 3), np.float32)
+        g_op_h, g_val_h = np.empty(k, np.float32), np.empty((k, 1), np.float32)
         _backward(
             offs, order, starts, ids, m, cn, op, qm, col, width, height, tiles_x, out, t_final, n_contrib,
             go, ga, g_m, g_cn, g_op, g_col, ctx.n_geo,
