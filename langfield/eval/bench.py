@@ -92,23 +92,58 @@ def pair_flops(channels: int) -> int:
     return 3 * forward
 
 
-def cpu_peak_gflops() -> dict[str, Any]:
+def cpu_peak_gflops(cpuinfo: str | None = None) -> dict[str, Any]:
     """An estimate of this machine's fp32 FMA peak: cores x clock x SIMD lanes x 2 FMA units x 2.
 
-    The lanes come from /proc/cpuinfo's flags (16 with AVX-512, 8 with AVX2, else 4), the clock from
-    its "cpu MHz" (the base clock a VM reports; boost clocks are higher), the cores from the CPUs this
-    process may run on. Two FMA units per core is an assumption (true of current x86 server cores).
+    The lanes are those of one FMA unit: 16 with AVX-512, 8 with AVX2, else 4, from /proc/cpuinfo's
+    flags (or ``cpuinfo``'s text), halved where the units are narrower than the instructions (see
+    :func:`fma_lanes`). The clock is its "cpu MHz" (the base clock a VM reports; boost clocks are
+    higher), the cores those this process may run on. Two FMA units per core is an assumption (true of
+    current x86 server cores).
     """
     import os
 
-    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
-    flags = set(next((ln.split(":", 1)[1].split() for ln in text.splitlines() if ln.startswith("flags")), []))
-    mhz = [float(ln.split(":", 1)[1]) for ln in text.splitlines() if ln.startswith("cpu MHz")]
-    lanes = 16 if "avx512f" in flags else 8 if "avx2" in flags else 4
+    if cpuinfo is None:
+        cpuinfo = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    lines = cpuinfo.splitlines()
+    mhz = [float(ln.split(":", 1)[1]) for ln in lines if ln.startswith("cpu MHz")]
+    lanes, why = fma_lanes(cpuinfo)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     ghz = (max(mhz) / 1000.0) if mhz else None
     peak = cores * ghz * lanes * 2 * 2 if ghz else None
-    return {"cores": cores, "ghz": ghz, "fp32_lanes": lanes, "fma_units": 2, "gflops": peak}
+    return {"cores": cores, "ghz": ghz, "fp32_lanes": lanes, "lanes_why": why, "fma_units": 2, "gflops": peak}
+
+
+def fma_lanes(cpuinfo: str) -> tuple[int, str]:
+    """fp32 lanes of one FMA unit from /proc/cpuinfo's text, and why, in a few words.
+
+    The widest instructions the flags name, except on two AMD families whose FMA units are half as
+    wide as those instructions, each instruction passing through a unit in two halves: Zen and Zen+
+    (family 23, models below 48: 128-bit units under AVX2; AMD's Software Optimization Guide for
+    family 17h) and Zen 4 (family 25 with AVX-512: 256-bit units; A. Yee, "Zen4's AVX512 Teardown",
+    numberworld.org, 2022). On the first, a packed 256-bit FMA chain measured 1.2 FMAs per cycle of
+    the 2.0 GHz /proc/cpuinfo reports (about 1 per cycle of its boost clock), not 2.
+    """
+
+    def field(name: str) -> str:
+        return next(
+            (ln.split(":", 1)[1].strip() for ln in cpuinfo.splitlines() if ln.split(":")[0].strip() == name),
+            "",
+        )
+
+    flags = set(field("flags").split())
+    amd = field("vendor_id") == "AuthenticAMD"
+    family = int(field("cpu family")) if field("cpu family").isdigit() else -1
+    model = int(field("model")) if field("model").isdigit() else -1
+    if "avx512f" in flags:
+        return (8, "AVX-512 on 256-bit units (AMD Zen 4)") if amd and family == 25 else (16, "AVX-512")
+    if "avx2" in flags:
+        return (
+            (4, "AVX2 on 128-bit units (AMD Zen, Zen+)")
+            if amd and family == 23 and model < 48
+            else (8, "AVX2")
+        )
+    return 4, "SSE"
 
 
 def tile_pairs(offsets: torch.Tensor, width: int, height: int) -> int:
@@ -460,7 +495,7 @@ def format_throughput(r: dict) -> str:
     peak = r["peak"]
     peak_txt = (
         f"{peak['gflops']:.0f} GFLOP/s fp32 FMA peak ({peak['cores']} cores x {peak['ghz']:.2f} GHz x "
-        f"{peak['fp32_lanes']} lanes x {peak['fma_units']} FMA units x 2)"
+        f"{peak['fp32_lanes']} lanes ({peak['lanes_why']}) x {peak['fma_units']} FMA units x 2)"
         if peak["gflops"]
         else "no FMA peak estimate (no clock in /proc/cpuinfo)"
     )

@@ -334,6 +334,33 @@ def test_raster_throughput_counts_the_pairs_the_reference_binning_lists() -> Non
         assert r["fraction_of_peak"] == pytest.approx(r["achieved_gflops"] / peak["gflops"])
 
 
+def _cpuinfo(vendor: str, family: int, model: int, flags: str) -> str:
+    return (
+        f"processor\t: 0\nvendor_id\t: {vendor}\ncpu family\t: {family}\nmodel\t\t: {model}\n"
+        f"model name\t: Some CPU\ncpu MHz\t\t: 2000.000\nflags\t\t: fpu sse2 {flags}\n"
+    )
+
+
+@pytest.mark.parametrize(
+    ("vendor", "family", "model", "flags", "lanes"),
+    [
+        ("AuthenticAMD", 23, 1, "avx avx2 fma", 4),  # Zen (EPYC 7001): 128-bit FMA units
+        ("AuthenticAMD", 23, 49, "avx avx2 fma", 8),  # Zen 2 (EPYC 7002): 256-bit units
+        ("AuthenticAMD", 25, 1, "avx avx2 fma", 8),  # Zen 3
+        ("AuthenticAMD", 25, 17, "avx avx2 fma avx512f", 8),  # Zen 4: AVX-512 in two 256-bit halves
+        ("GenuineIntel", 6, 143, "avx avx2 fma avx512f", 16),
+        ("GenuineIntel", 6, 85, "avx avx2 fma", 8),
+        ("GenuineIntel", 6, 85, "", 4),
+    ],
+)
+def test_fma_peak_counts_the_lanes_of_the_units_not_of_the_instructions(vendor, family, model, flags, lanes):
+    from langfield.eval.bench import cpu_peak_gflops
+
+    peak = cpu_peak_gflops(_cpuinfo(vendor, family, model, flags))
+    assert peak["fp32_lanes"] == lanes and peak["ghz"] == 2.0
+    assert peak["gflops"] == pytest.approx(peak["cores"] * 2.0 * lanes * 4)
+
+
 @pytest.mark.slow
 def test_demo_writes_report_renders_and_field(tmp_path, capsys) -> None:
     out = tmp_path / "demo"
