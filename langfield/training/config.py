@@ -119,9 +119,7 @@ class TrainConfig:
         flag="--init-align",
     )
     init_fill: float = in_start(
-        0.1,
-        "random points added to the start, as a fraction of the photo points",
-        check=Number(0.0, 10.0),
+        0.1, "random points added to the start, as a fraction of the photo points", check=Number(0.0, 10.0)
     )
     num_gaussians: int | None = in_start(
         None,
@@ -329,6 +327,12 @@ class TrainConfig:
         check=Number(0.0),
         flag="--lambda-visibility",
     )
+    lambda_crossview: float = in_sparse_view(
+        0.0,
+        "weight of cross-view consistency: the rendered depth warps the other photos onto this one (0: off)",
+        check=Number(0.0),
+        flag="--lambda-crossview",
+    )
     visibility_tolerance: float = in_sparse_view(
         0.02, "the free-space term's relative depth tolerance", check=Number(0.0, 1.0)
     )
@@ -355,9 +359,7 @@ class TrainConfig:
         flag="--lambda-anisotropy",
     )
     anisotropy_ratio: float = in_sparse_view(
-        10.0,
-        "the largest max/min scale the anisotropy penalty allows",
-        check=Number(1.0),
+        10.0, "the largest max/min scale the anisotropy penalty allows", check=Number(1.0)
     )
     refiner: str | None = in_sparse_view(
         None,
@@ -403,9 +405,7 @@ class TrainConfig:
         flag="--no-densify",
     )
     max_gaussians: int | None = in_strategy(
-        None,
-        "most Gaussians densification may make (default: 4 x the start)",
-        check=Whole(1, optional=True),
+        None, "most Gaussians densification may make (default: 4 x the start)", check=Whole(1, optional=True)
     )
     refine_start: int = in_strategy(500, "first densification iteration", check=Whole(0))
     refine_every: int = in_strategy(100, "iterations between densifications", check=Whole(1))

@@ -9,6 +9,7 @@ record and show it; a term that is off or does not apply this step is absent.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -110,13 +111,17 @@ def _geometry_and_language_terms(run: Run, name: str, view: ViewTargets, out: Re
     """The step's terms on the rendered depth, the scales, the latents and the opacities."""
     cfg, field, cam = run.cfg, run.field, view.camera
     terms = Terms()
-    if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0:
+    if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0 or cfg.lambda_crossview > 0:
         covered = out.alpha.detach() > 0.5
         depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
     if cfg.lambda_visibility > 0:
         violation = visibility_loss(depth_z, covered, cam, name, run.rendered, cfg.visibility_tolerance)
         terms.add("visibility", cfg.lambda_visibility * violation)
         run.rendered[name] = (cam, depth_z.detach(), covered)
+    if cfg.lambda_crossview > 0:
+        others = [(v.camera, v.image) for other, v in run.views.items() if other != name]
+        crossview = cross_view_loss(depth_z, covered, view.image, cam, others, cfg.lambda_dssim)
+        terms.add("crossview", cfg.lambda_crossview * crossview)
     if cfg.lambda_smooth > 0:
         terms.add("smooth", cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered))
     if cfg.lambda_spread > 0 and out.depth_spread is not None:
@@ -196,6 +201,53 @@ def virtual_view_loss(
     l1 = ((warped - image).abs().mean(-1) * mask).sum() / mask.sum()
     d_ssim = ((1.0 - ssim_map(warped, image)[0].mean(0)) * mask).sum() / mask.sum()
     return (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * d_ssim
+
+
+def cross_view_loss(
+    depth_z: Tensor,
+    covered: Tensor,
+    image: Tensor,
+    cam: Camera,
+    others: list[tuple[Camera, Tensor]],
+    lambda_dssim: float = 0.2,
+    min_std: float = 0.02,
+) -> Tensor:
+    """Multi-view photometric consistency between the training photos: this view's rendered z-depth
+    [H, W] warps each other photo onto ``image`` [H, W, 3] (:func:`reprojection_warp`), and where the
+    field covers a pixel the warp must give the photo (L1 + D-SSIM). Per pixel the better of the other
+    photos counts (Monodepth2's minimum reprojection error, Godard et al., ICCV 2019): a surface one
+    photo sees occluded or outside its frame is then judged by the one that sees it. The photos are
+    fixed targets, so the gradient reaches the depth alone, through the image gradients where the warp
+    lands; unlike the virtual-view term, nothing the field renders elsewhere can agree with a wrong depth.
+
+    Args:
+        others: ``(camera, photo [h, w, 3])`` of the other training views, at any size.
+        min_std: pixels whose 7 x 7 neighbourhood in ``image`` varies less (standard deviation of the
+            grey level) are left out: a white table or a saturated highlight matches its like at any
+            depth, and there the term would only move the surface at random.
+    """
+    best = None
+    for other_cam, other_image in others:
+        warped, valid = reprojection_warp(other_image, depth_z, cam, other_cam)
+        error = (1.0 - lambda_dssim) * (warped - image).abs().mean(-1)
+        error = error + lambda_dssim * (1.0 - ssim_map(warped, image)[0].mean(0))
+        error = torch.where(valid, error, torch.full_like(error, math.inf))
+        best = error if best is None else torch.minimum(best, error)
+    if best is None:
+        return depth_z.sum() * 0.0
+    mask = covered & torch.isfinite(best) & textured(image, min_std)
+    if not bool(mask.any()):
+        return depth_z.sum() * 0.0
+    return torch.where(mask, best, torch.zeros_like(best)).sum() / mask.sum()
+
+
+def textured(image: Tensor, min_std: float, size: int = 7) -> Tensor:
+    """[H, W] bool: where the grey level of ``image`` [H, W, 3] varies by more than ``min_std`` (standard
+    deviation) over a ``size`` x ``size`` neighbourhood."""
+    grey = image.detach().mean(-1)[None, None]
+    pool = lambda x: torch.nn.functional.avg_pool2d(x, size, 1, size // 2, count_include_pad=False)  # noqa: E731
+    variance = (pool(grey * grey) - pool(grey) ** 2).clamp_min(0.0)
+    return variance[0, 0].sqrt() > min_std
 
 
 def visibility_loss(

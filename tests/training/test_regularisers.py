@@ -192,6 +192,94 @@ def test_the_reprojection_warp_leaves_out_what_the_other_view_sees_occluded() ->
     assert free.sum() > 0.7 * free.numel() and not hidden.any() and torch.equal(empty, free)
 
 
+def _stripes(
+    cam: Camera, depth: float, other: Camera, flip: bool = False, white_from: float = 9.0
+) -> torch.Tensor:
+    """[h, w, 3] what ``other`` sees of a plane at z-depth ``depth`` before ``cam`` (same axes), painted
+    with sin(x / 0.15) along world x (1 - that with ``flip``), white from x = ``white_from`` on."""
+    v, u = torch.meshgrid(torch.arange(other.height) + 0.5, torch.arange(other.width) + 0.5, indexing="ij")
+    x = other.center[0] + (u - other.cx) / other.fx * depth  # the plane faces both cameras squarely
+    paint = 0.5 + 0.5 * torch.sin(x / 0.15)
+    paint = torch.where(x >= white_from, torch.ones_like(paint), 1.0 - paint if flip else paint)
+    return paint[..., None].repeat(1, 1, 3).float()
+
+
+def _crossview_setup() -> tuple[Camera, list[Camera], float]:
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), width=64, height=16)
+    return cam, [shifted_camera(cam, 0.3), shifted_camera(cam, -0.3)], 2.0
+
+
+def test_the_cross_view_term_is_least_at_the_true_depth_and_pulls_towards_it() -> None:
+    from langfield.training.losses import cross_view_loss
+
+    cam, others, z = _crossview_setup()
+    image = _stripes(cam, z, cam)
+    photos = [(o, _stripes(cam, z, o)) for o in others]
+    covered = torch.ones(16, 64, dtype=torch.bool)
+
+    def loss_and_slope(depth: float) -> tuple[float, float]:
+        d = torch.full((16, 64), depth, requires_grad=True)
+        loss = cross_view_loss(d, covered, image, cam, photos)
+        loss.backward()
+        return float(loss.detach()), float(d.grad.sum())
+
+    at_truth, _ = loss_and_slope(z)
+    far, far_slope = loss_and_slope(z * 1.08)
+    near, near_slope = loss_and_slope(z * 0.93)
+    assert at_truth < 0.02 and far > 5 * at_truth and near > 5 * at_truth
+    assert far_slope > 0 and near_slope < 0  # descent moves the depth back to the plane
+
+
+def test_the_cross_view_term_takes_the_photo_that_agrees_per_pixel() -> None:
+    """A second photo that disagrees everywhere (as one that sees the surface occluded) changes nothing;
+    pixels no other photo sees and pixels the field does not cover are left out."""
+    from langfield.training.losses import cross_view_loss
+
+    cam, (left, right), z = _crossview_setup()
+    image, depth = _stripes(cam, z, cam), torch.full((16, 64), z)
+    good, bad = (left, _stripes(cam, z, left)), (right, torch.full((16, 64, 3), 2.0))
+    covered = torch.ones(16, 64, dtype=torch.bool)
+    _, seen = reprojection_warp(good[1], depth, cam, left)
+    assert 0.8 * seen.numel() < seen.sum() < seen.numel()  # the left photo misses an edge
+    alone = float(cross_view_loss(depth, seen, image, cam, [good]))
+    assert 0 < alone < 0.02
+    assert float(cross_view_loss(depth, covered, image, cam, [good])) == pytest.approx(alone, abs=1e-7)
+    assert float(cross_view_loss(depth, seen, image, cam, [bad, good])) == pytest.approx(alone, abs=1e-7)
+    assert float(cross_view_loss(depth, seen, image, cam, [bad])) > 20 * alone
+    d = depth.clone().requires_grad_(True)
+    nothing = torch.zeros(16, 64, dtype=torch.bool)
+    for empty in (
+        cross_view_loss(d, nothing, image, cam, [good]),
+        cross_view_loss(d, covered, image, cam, []),
+    ):
+        assert float(empty.detach()) == 0.0
+        empty.backward()  # still part of the graph
+    assert float(d.grad.abs().sum()) == 0.0
+
+
+def test_the_cross_view_term_leaves_out_what_has_no_texture() -> None:
+    """A white wall matches white at any depth; what moves its surface there is only the stripes at its
+    edge: it is left out, however wrong its depth."""
+    from langfield.training.losses import cross_view_loss, textured
+
+    cam, others, z = _crossview_setup()
+    image = _stripes(cam, z, cam, white_from=0.3)
+    photos = [(o, _stripes(cam, z, o, white_from=0.3)) for o in others]
+    kept = textured(image, 0.02)
+    assert kept[:, :39].all() and not kept[:, 40:].any()
+    covered = torch.ones(16, 64, dtype=torch.bool)
+    at_truth = float(cross_view_loss(torch.full((16, 64), z), covered, image, cam, photos))
+    for min_std, moved in ((0.02, False), (-1.0, True)):
+        depth = torch.full((16, 64), z)
+        depth[:, 40:] = 0.6 * z  # the wall's depth far off
+        depth.requires_grad_(True)
+        loss = cross_view_loss(depth, covered, image, cam, photos, min_std=min_std)
+        loss.backward()
+        assert bool((depth.grad[:, 40:] != 0).any()) == moved
+        if not moved:  # the kept pixels' SSIM windows reach the wall: a trace of it remains
+            assert float(loss.detach()) == pytest.approx(at_truth, rel=0.01)
+
+
 def test_an_orbiting_camera_keeps_its_pivot_in_the_image_centre() -> None:
     cam = Camera.look_at((0.3, -2.0, 0.5), (0.0, 0.0, 0.2), width=40, height=30)
     pivot = 1.5
@@ -279,7 +367,7 @@ def scene(room_factory):
 def test_training_with_every_regulariser_runs_each_term_and_records_it(scene) -> None:
     more = {"lambda_virtual": 1.0, "lambda_anisotropy": 0.1, "lambda_smooth": 0.1, "lambda_spread": 1.0,
             "lambda_visibility": 1.0, "spread_start": 0.0, "virtual_every": 2, "opacity_noise": 0.1,
-            "virtual_motion": "orbit"}  # fmt: skip
+            "virtual_motion": "orbit", "lambda_crossview": 1.0}  # fmt: skip
     cfg = lf.TrainConfig(iterations=6, num_gaussians=300, init="random", drop_gamma=0.2, **more)
     field = lf.train(scene, cfg, progress=False)
     assert all(torch.isfinite(p).all() for p in field.splats.values())
@@ -288,11 +376,11 @@ def test_training_with_every_regulariser_runs_each_term_and_records_it(scene) ->
     # Each term ran where its schedule says: the virtual view every second step, the rest every step.
     steps = record["steps"]
     assert steps["virtual"] == 3
-    for name in ("color", "anisotropy", "smooth", "spread", "visibility", "opacity"):
+    for name in ("color", "anisotropy", "smooth", "spread", "visibility", "crossview", "opacity"):
         assert steps[name] == 6, name
     # The weighted terms add up to the total, and the penalties that cannot be negative are not.
     assert sum(record["terms"].values()) == pytest.approx(record["total"], rel=1e-6)
-    assert all(record["terms"][n] >= 0 for n in ("anisotropy", "smooth", "spread", "visibility"))
+    assert all(record["terms"][n] >= 0 for n in ("anisotropy", "smooth", "spread", "visibility", "crossview"))
     assert record["terms"]["color"] > 0
 
 
@@ -324,6 +412,8 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
         "0.1",
         "--virtual-motion",
         "orbit",
+        "--lambda-crossview",
+        "0.3",
     ]
     argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
     assert main([*argv, "--init", "random", *flags]) == 0
@@ -332,7 +422,7 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
     expected.update(random_background=False, lambda_smooth=0.01, lambda_anisotropy=0.02)
     expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99, virtual_every=3)
     expected.update(virtual_resolution=0.5, half_resolution_until=0.5, lambda_visibility=0.1)
-    expected.update(lambda_spread=0.05, opacity_noise=0.1, virtual_motion="orbit")
+    expected.update(lambda_spread=0.05, opacity_noise=0.1, virtual_motion="orbit", lambda_crossview=0.3)
     assert {k: recorded[k] for k in expected} == expected
     assert main([*argv, "--force", "--random-background"]) == 0
     assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
