@@ -88,7 +88,7 @@ CASES: dict[str, dict[str, Any]] = {
     "smooth": {"lambda_smooth": 0.1},
     "carve": {"carve_free_space": True},
     "visibility": {"lambda_visibility": 0.5},
-    "crossview": {"lambda_crossview": 1.0},
+    "crossview": {"lambda_crossview": 0.2},
     "full-resolution": {"half_resolution_until": 0.0},
     "virtual-every-step": {"virtual_every": 1},
     "half-size-virtual": {"virtual_resolution": 0.5},

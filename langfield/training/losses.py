@@ -245,8 +245,11 @@ def textured(image: Tensor, min_std: float, size: int = 7) -> Tensor:
     """[H, W] bool: where the grey level of ``image`` [H, W, 3] varies by more than ``min_std`` (standard
     deviation) over a ``size`` x ``size`` neighbourhood."""
     grey = image.detach().mean(-1)[None, None]
-    pool = lambda x: torch.nn.functional.avg_pool2d(x, size, 1, size // 2, count_include_pad=False)  # noqa: E731
-    variance = (pool(grey * grey) - pool(grey) ** 2).clamp_min(0.0)
+
+    def mean(x: Tensor) -> Tensor:
+        return torch.nn.functional.avg_pool2d(x, size, 1, size // 2, count_include_pad=False)
+
+    variance = (mean(grey * grey) - mean(grey) ** 2).clamp_min(0.0)
     return variance[0, 0].sqrt() > min_std
 
 
