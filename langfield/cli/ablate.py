@@ -39,7 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "baseline, no-opacity-reg, random-init, sfm-init, depth-init, no-dropout, no-virtual, "
         "no-random-background, no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, "
         "full-resolution, virtual-every-step, half-size-virtual, opacity-noise, orbit, orbit-wide, "
-        "direction-frequencies, depth-baseline, virtual-occlusion (default: full, no-lop, no-lad, "
+        "direction-frequencies, depth-baseline, virtual-occlusion, crossview (default: full, no-lop, no-lad, "
         "no-depth, per-gaussian, paper-language, random-init, no-dropout, no-virtual, "
         "no-random-background, no-empty-space, no-opacity-decay; those a scene cannot use skipped)",
     )
