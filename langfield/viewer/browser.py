@@ -104,17 +104,26 @@ def screenshot_viewer(url: str, path: str | Path, phrase: str | None = None, ans
     typing it and once ``answered()`` holds (the viewer has shown the answer)."""
     path = Path(path)
     with open_page(url) as page:
+        # viser's notice of software WebGL covers the scene's top left; hidden by a style rule rather than
+        # its close button, whose click waits for a frame.
+        page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
         phrase_box(page).wait_for(timeout=30_000)
-        if not wait_for(lambda: float(scene_region(grab(page)).std(axis=(0, 1)).mean()) > 10.0):
-            raise RuntimeError("the viewer's page showed no splats")
+        # Every screenshot is a frame, and on a CPU a frame of the splats takes seconds (SwiftShader): so
+        # the phrase is typed before any frame is asked for, and the first frame that shows the splats
+        # after the answer is the one kept.
         if phrase is not None:
-            phrase_box(page).press_sequentially(phrase, delay=30)
+            phrase_box(page).fill(phrase)
             if answered is not None and not wait_for(answered):
                 raise RuntimeError(f"the viewer did not answer {phrase!r}")
-        close = page.locator(".mantine-Notification-closeButton")  # viser's notice of software WebGL
-        for i in range(close.count()):
-            close.nth(i).click()
-        page.wait_for_timeout(1500)  # the heat map image and the splats' sort settle
-        shot = grab(page)
-    cv2.imwrite(str(path), cv2.cvtColor(shot, cv2.COLOR_RGB2BGR))
+        page.wait_for_timeout(500)  # the heat map image arrives and the splats' sort settles
+        shots: list[np.ndarray] = []
+        if not wait_for(lambda: _splats_shown(shots, grab(page))):
+            raise RuntimeError("the viewer's page showed no splats")
+    cv2.imwrite(str(path), cv2.cvtColor(shots[-1], cv2.COLOR_RGB2BGR))
     return path
+
+
+def _splats_shown(shots: list[np.ndarray], shot: np.ndarray) -> bool:
+    """Keeps ``shot``; whether its scene region shows splats (not one flat colour)."""
+    shots.append(shot)
+    return float(scene_region(shot).std(axis=(0, 1)).mean()) > 10.0
