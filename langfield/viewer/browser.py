@@ -99,9 +99,14 @@ def phrase_box(page):
     return page.locator("xpath=//*[normalize-space(text())='Phrase']/following::input[1]")
 
 
+def splats_drawn(shot: np.ndarray) -> bool:
+    """Whether a viewer screenshot's scene region shows splats (not one flat colour)."""
+    return float(scene_region(shot).std(axis=(0, 1)).mean()) > 10.0
+
+
 def screenshot_viewer(url: str, path: str | Path, phrase: str | None = None, answered=None) -> Path:
-    """Writes a PNG of the viewer's page at ``url`` once the splats are drawn; with ``phrase``, after
-    typing it and once ``answered()`` holds (the viewer has shown the answer)."""
+    """Writes the viewer's page at ``url`` to ``path`` (its format by the suffix) once the splats are drawn;
+    with ``phrase``, after typing it and once ``answered()`` holds (the viewer has shown the answer)."""
     path = Path(path)
     with open_page(url) as page:
         # viser's notice of software WebGL covers the scene's top left; hidden by a style rule rather than
@@ -116,14 +121,13 @@ def screenshot_viewer(url: str, path: str | Path, phrase: str | None = None, ans
             if answered is not None and not wait_for(answered):
                 raise RuntimeError(f"the viewer did not answer {phrase!r}")
         page.wait_for_timeout(500)  # the heat map image arrives and the splats' sort settles
-        shots: list[np.ndarray] = []
-        if not wait_for(lambda: _splats_shown(shots, grab(page))):
+        last: list[np.ndarray] = []
+
+        def drawn() -> bool:
+            last[:] = [grab(page)]
+            return splats_drawn(last[0])
+
+        if not wait_for(drawn):
             raise RuntimeError("the viewer's page showed no splats")
-    cv2.imwrite(str(path), cv2.cvtColor(shots[-1], cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(path), cv2.cvtColor(last[0], cv2.COLOR_RGB2BGR))
     return path
-
-
-def _splats_shown(shots: list[np.ndarray], shot: np.ndarray) -> bool:
-    """Keeps ``shot``; whether its scene region shows splats (not one flat colour)."""
-    shots.append(shot)
-    return float(scene_region(shot).std(axis=(0, 1)).mean()) > 10.0

@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 
 from langfield import LanguageField
-from langfield.viewer.browser import browser_missing, grab, open_page, phrase_box, scene_region, wait_for
+from langfield.viewer.browser import (
+    browser_missing,
+    grab,
+    open_page,
+    phrase_box,
+    scene_region,
+    splats_drawn,
+    wait_for,
+)
 from langfield.viewer.server import Viewer
 
 pytestmark = [
@@ -28,13 +36,8 @@ def test_viewer_draws_splats_and_answers_a_typed_phrase(viewer_field_dir, tmp_pa
     try:
         with open_page(viewer.url) as page:
             page.get_by_text("Type a phrase").wait_for(timeout=30_000)
-            shots: list[np.ndarray] = []
-
-            def drawn() -> bool:  # the scene is not one flat colour
-                shots.append(grab(page))
-                return float(scene_region(shots[-1]).std(axis=(0, 1)).mean()) > 10.0
-
-            assert wait_for(drawn), "the page never showed anything but a flat canvas"
+            drawn = wait_for(lambda: splats_drawn(grab(page)))
+            assert drawn, "the page never showed anything but a flat canvas"
             page.wait_for_timeout(1000)  # the splats' depth sort settles
             with_splats = grab(page)
             viewer.splats.visible = False
