@@ -46,7 +46,7 @@ from langfield.model.hashgrid import HashGridConfig
 from langfield.model.language import LANGUAGE_CHANNELS, LATENT_DIM, N_LEVELS, LanguageHeads
 from langfield.model.reading import concept_groups, vote_entries
 from langfield.query import Query, make_query
-from langfield.raster import Backend, rasterize, rasterize_with_second_pass
+from langfield.raster import Backend, rasterize, rasterize_slots, rasterize_with_second_pass
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -302,7 +302,26 @@ class LanguageField(nn.Module):
             raise ValueError("this field has no codebook (it was trained with --language-decode continuous)")
         return self._codebook
 
-    def read_entries(self, camera: Camera, latents: Tensor, alpha: Tensor) -> Tensor:
+    def vote_gaussians(self) -> tuple[Tensor, tuple[Tensor, ...]]:
+        """What a vote reads of the Gaussians in every view: the nearest entry of each one's own latents
+        ``[3, N]`` and their geometry (means, rotations, scales, opacities); no gradient."""
+        with torch.no_grad():
+            own = self.codebook_indices(self.gaussian_latents().transpose(0, 1))
+            geometry = (
+                self.splats["means"].detach(),
+                self.splats["quats"].detach(),
+                G.scales(self.splats),
+                G.opacities(self.splats).reshape(-1),
+            )
+        return own, geometry
+
+    def read_entries(
+        self,
+        camera: Camera,
+        latents: Tensor,
+        alpha: Tensor,
+        gaussians: tuple[Tensor, tuple[Tensor, ...]] | None = None,
+    ) -> Tensor:
         """``[3, H, W]`` long: the codebook entry each pixel of a view reads at each level (-1: none).
 
         ``"codebook"``: the nearest entry of the pixel's rendered latent. ``"vote"``: that entry where the
@@ -314,22 +333,18 @@ class LanguageField(nn.Module):
         Args:
             camera: the view.
             latents, alpha: its render's ``latents`` ``[3, H, W, 3]`` and ``alpha`` ``[H, W]``.
+            gaussians: :meth:`vote_gaussians`, for a caller that reads many views of an unchanged field
+                (computed here when None).
         """
         codebook = self._need_codebook()
         nearest = self.codebook_indices(latents)
         if self.language_decode != "vote":
             return nearest
+        own, geometry = self.vote_gaussians() if gaussians is None else gaussians
         with torch.no_grad():
-            own = self.codebook_indices(self.gaussian_latents().transpose(0, 1))  # [3, N]
-            geometry = (
-                self.splats["means"],
-                self.splats["quats"],
-                G.scales(self.splats),
-                G.opacities(self.splats).reshape(-1),
-            )
 
-            def weights(values: Tensor) -> Tensor:
-                return rasterize(*geometry, values, camera, backend=self.meta.backend).image
+            def weights(columns: Tensor, n: int) -> Tensor:
+                return rasterize_slots(*geometry, columns, n, camera, backend=self.meta.backend)
 
             sizes = [int(c.shape[0]) for c in codebook]
             groups = [concept_groups(c) for c in codebook]

@@ -328,6 +328,7 @@ class _Shared:
         self.channels: Tensor | None = None
         self.last_render: tuple[Camera, Tensor, Tensor] | None = None
         self.last_entries: tuple[Camera, Tensor] | None = None
+        self.voters: tuple[Tensor, tuple[Tensor, ...]] | None = None  # LanguageField.vote_gaussians
         self.gaussian_rel: Tensor | None = None
         self.code_tables: list[Tensor] | None = None
 
@@ -400,8 +401,10 @@ class _Shared:
         if self.last_entries is not None and self.last_entries[0] is camera:
             return self.last_entries[1]
         latents, alpha = self.render(camera)
+        if self.voters is None and self.field.language_decode == "vote":
+            self.voters = self.field.vote_gaussians()
         with torch.no_grad():
-            index = self.field.read_entries(camera, latents, alpha)
+            index = self.field.read_entries(camera, latents, alpha, self.voters)
         self.last_entries = (camera, index)
         return index
 

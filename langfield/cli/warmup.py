@@ -11,14 +11,15 @@ from langfield.camera import Camera
 from langfield.kernels import notice_once, uncompiled_kernels
 from langfield.model.colour import ColorField
 from langfield.model.hashgrid import HashGridConfig
-from langfield.raster import rasterize
+from langfield.raster import rasterize, rasterize_slots
 
 __all__ = ["main", "warm_up"]
 
 
 def warm_up() -> float:
     """Compiles (or loads) every kernel by rendering a few Gaussians forward and backward with the
-    ``numba`` backend and a hash-grid colour field, as training does. Returns the seconds it took."""
+    ``numba`` backend and a hash-grid colour field, as training does, and their weights per codebook
+    entry, as a query does. Returns the seconds it took."""
     t0 = time.perf_counter()
     notice_once()
     generator = torch.Generator().manual_seed(0)
@@ -32,6 +33,8 @@ def warm_up() -> float:
     camera = Camera.look_at(eye=(0, -2, 0.5), target=(0, 0, 0), width=32, height=24)
     out = rasterize(means, quats, scales, opacities, features, camera, backend="numba")
     (out.image.sum() + out.alpha.sum()).backward()
+    slots = torch.randint(0, 4, (n, 1), generator=generator)  # a vote's weights per codebook entry
+    rasterize_slots(means.detach(), quats.detach(), scales.detach(), opacities.detach(), slots, 4, camera)
     return time.perf_counter() - t0
 
 

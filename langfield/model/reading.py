@@ -10,8 +10,10 @@ rendering weight; elsewhere the pixel reads the entry whose Gaussians carry the 
 mode of the Gaussians' entries instead of the entry of their mean).
 
 The weights per entry come from the tested rasterizer itself: every Gaussian carries a one-hot row of
-its entry, so channel e of the render is ``sum_i w_i(p) [entry_i = e]``. Entries are rendered in chunks
-of channels, so memory stays bounded for a codebook of thousands of training masks.
+its entry, so channel e of the render is ``sum_i w_i(p) [entry_i = e]``; the rows are given by index
+(:func:`langfield.raster.rasterize_slots`), so a hit costs a Gaussian's three entries, not every entry.
+Entries are rendered in chunks of channels, so memory stays bounded for a codebook of thousands of
+training masks.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ def vote_entries(
     sizes: list[int],
     groups: list[Tensor],
     alpha: Tensor,
-    render: Callable[[Tensor], Tensor],
+    render: Callable[[Tensor, int], Tensor],
     share: float = VOTE_SHARE,
     chunk_values: int = CHUNK_VALUES,
 ) -> Tensor:
@@ -71,7 +73,9 @@ def vote_entries(
         sizes: the number of entries of each level.
         groups: per level, ``[P_l]`` long concept ids (:func:`concept_groups`).
         alpha: ``[H, W]`` the pixels' accumulated opacity (the sum of their rendering weights).
-        render: ``[N, C]`` per-Gaussian values -> ``[H, W, C]`` their rendering-weighted sums in the view.
+        render: ``(columns [N, K] long, C)`` -> ``[H, W, C]``: channel c the rendering weight of the
+            Gaussians that list c among their columns (-1: none), as
+            :func:`langfield.raster.rasterize_slots` gives it.
         share: :data:`VOTE_SHARE`.
         chunk_values: most floats of one render's output.
 
@@ -84,9 +88,12 @@ def vote_entries(
     levels = range(len(sizes))
     # Slots per level: its entries, then "no entry" (a concept of its own, -1).
     slot_of = [torch.where(e < 0, sizes[lv], e) for lv, e in enumerate(gaussian_entries)]
-    concepts = [torch.cat([g, g.new_tensor([-1])]) for g in groups]
+    # Concept ids per slot in [0, P]: a group's smallest entry, P for "no entry".
+    concepts = [torch.cat([g, g.new_tensor([sizes[lv]])]) for lv, g in enumerate(groups)]
     nearest_slot = torch.stack([torch.where(nearest[lv] < 0, sizes[lv], nearest[lv]) for lv in levels])
     nearest_concept = torch.stack([concepts[lv][nearest_slot[lv]] for lv in levels])
+    # Per level, each pixel's slots of its blend's concept: [H * W, G] (-1: padding).
+    members = [_members(concepts[lv])[nearest_concept[lv].reshape(-1)] for lv in levels]
     best_weight = torch.full((len(sizes), h, w), -1.0)
     best_slot = torch.zeros((len(sizes), h, w), dtype=torch.long)
     concept_weight = torch.zeros(len(sizes), h, w)
@@ -96,18 +103,38 @@ def vote_entries(
     step = max(1, chunk_values // max(1, h * w))
     for start in range(0, len(slots), step):
         chunk = slots[start : start + step]
-        weights = render(torch.stack([(slot_of[lv] == s).float() for lv, s in chunk], dim=1))  # [H, W, C]
+        # Each Gaussian's column in this chunk at each level (-1: its slot lies in another chunk).
+        where = [torch.full((sizes[lv] + 1,), -1, dtype=torch.long) for lv in levels]
+        for c, (lv, s) in enumerate(chunk):
+            where[lv][s] = c
+        columns = torch.stack([where[lv][slot_of[lv]] for lv in levels], dim=1)  # [N, L]
+        weights = render(columns, len(chunk))  # [H, W, C]
         for lv in levels:
             cols = [c for c, (level, _) in enumerate(chunk) if level == lv]
             if not cols:
                 continue
             ids = torch.tensor([chunk[c][1] for c in cols])
-            part = weights[..., cols]
+            part = weights[..., cols[0] : cols[-1] + 1]  # a chunk lists its slots level by level
             top, arg = part.max(dim=-1)  # the first of equal maxima: the lower slot
             better = top > best_weight[lv]  # strictly: an earlier chunk's lower slot keeps a tie
             best_weight[lv] = torch.where(better, top, best_weight[lv])
             best_slot[lv] = torch.where(better, ids[arg], best_slot[lv])
-            same = concepts[lv][ids] == nearest_concept[lv][..., None]
-            concept_weight[lv] += (part * same).sum(dim=-1)
+            # The weight of the pixel's concept: its member slots' columns here (-1: not in this chunk).
+            member_cols = torch.where(members[lv] >= 0, where[lv][members[lv]], -1) - cols[0]
+            inside = member_cols >= 0
+            carried = part.reshape(h * w, -1).gather(1, member_cols.clamp_min(0)) * inside
+            concept_weight[lv] += carried.sum(dim=1).reshape(h, w)
     chosen = torch.where(concept_weight >= share * alpha, nearest_slot, best_slot)
     return torch.stack([torch.where(chosen[lv] == sizes[lv], -1, chosen[lv]) for lv in levels])
+
+
+def _members(concepts: Tensor) -> Tensor:
+    """``[K, G]`` long: row k lists the slots whose concept is k (``concepts`` ``[S]``, ids in [0, K)),
+    padded with -1 to the largest concept's size G."""
+    k = int(concepts.max()) + 1
+    order = torch.argsort(concepts, stable=True)
+    counts = torch.bincount(concepts, minlength=k)
+    rank = torch.arange(len(concepts)) - torch.repeat_interleave(torch.cumsum(counts, 0) - counts, counts)
+    out = torch.full((k, int(counts.max())), -1, dtype=torch.long)
+    out[concepts[order], rank] = order
+    return out

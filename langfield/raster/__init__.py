@@ -49,26 +49,31 @@ class Kernels(NamedTuple):
         composite: front-to-back compositing of the binned Gaussians.
         composite_pair: compositing of two passes over the same footprints in one walk, or None (the
             second pass is then a :func:`rasterize` of its own).
+        composite_slots: compositing of one-hot channels given by index (:func:`rasterize_slots`), or
+            None (the one-hot rows are then made and composited as any channels).
     """
 
     project: Callable
     bin: Callable
     composite: Callable
     composite_pair: Callable | None
+    composite_slots: Callable | None
 
 
 def kernels(backend: Backend) -> Kernels:
     """The kernels of ``backend``: the one table of what each backend runs. The ``numba`` kernels are
     imported, and the notice of their one-time compilation shown, when first asked for."""
     if resolve_backend(backend) == "torch":
-        return Kernels(project_gaussians, bin_gaussians, rasterize_torch, None)
+        return Kernels(project_gaussians, bin_gaussians, rasterize_torch, None, None)
     from langfield.kernels import notice_once
     from langfield.raster.binning_cpu import bin_gaussians_cpu
-    from langfield.raster.composite_cpu import rasterize_cpu, rasterize_pair_cpu
+    from langfield.raster.composite_cpu import rasterize_cpu, rasterize_pair_cpu, rasterize_slots_cpu
     from langfield.raster.projection_cpu import project_gaussians_cpu
 
     notice_once()
-    return Kernels(project_gaussians_cpu, bin_gaussians_cpu, rasterize_cpu, rasterize_pair_cpu)
+    return Kernels(
+        project_gaussians_cpu, bin_gaussians_cpu, rasterize_cpu, rasterize_pair_cpu, rasterize_slots_cpu
+    )
 
 
 def _background(features: Tensor, background: Tensor | None) -> Tensor:
@@ -226,15 +231,56 @@ def rasterize_with_second_pass(
     return RasterOutput(image, alpha, projected.means2d, projected.radii), second
 
 
+def one_hot_rows(slots: Tensor, n_slots: int) -> Tensor:
+    """``[N, n_slots]`` float rows with a 1 at each of a row's ``slots`` (``[N, K]`` long, -1: none)."""
+    rows = torch.zeros(slots.shape[0], n_slots + 1)
+    rows.scatter_(1, torch.where(slots < 0, n_slots, slots), 1.0)
+    return rows[:, :n_slots]
+
+
+def rasterize_slots(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    slots: Tensor,
+    n_slots: int,
+    camera: Camera,
+    *,
+    backend: Backend = "auto",
+    near: float = NEAR_PLANE,
+) -> Tensor:
+    """Each column's rendering weight: ``[H, W, n_slots]``, channel c the sum of the weights of the
+    Gaussians that list c in their ``slots`` row (``[N, K]`` long, distinct columns, -1: none). No
+    gradient.
+
+    Equal to ``rasterize(means, quats, scales, opacities, one_hot_rows(slots, n_slots), camera).image``,
+    which the ``torch`` backend computes; the ``numba`` backend adds each hit to a Gaussian's K columns
+    only (:func:`~langfield.raster.composite_cpu.rasterize_slots_cpu`).
+    """
+    run = kernels(backend)
+    with torch.no_grad():
+        if run.composite_slots is None:
+            rows = one_hot_rows(slots, n_slots)
+            return rasterize(means, quats, scales, opacities, rows, camera, backend=backend, near=near).image
+        w, h = camera.width, camera.height
+        p = run.project(means, quats, scales, camera.world_to_camera(), camera.intrinsics(), w, h, near)
+        opacities = opacities.reshape(-1)
+        offsets, ids = run.bin(p.means2d, p.radii, p.conics, opacities, p.depths, w, h)
+        return run.composite_slots(p.means2d, p.conics, opacities, slots, n_slots, offsets, ids, w, h)
+
+
 __all__ = [
     "BACKENDS",
     "Kernels",
     "RasterOutput",
     "composite",
     "kernels",
+    "one_hot_rows",
     "project_gaussians",
     "quat_to_rotmat",
     "rasterize",
+    "rasterize_slots",
     "rasterize_with_second_pass",
     "resolve_backend",
 ]

@@ -200,6 +200,32 @@ def _gather_pair(gids, start, m, opac_h, q_max_h, values_h, gx, gy, ga, gb, gc, 
     return go, gv, span
 
 
+@njit(inline="always", fastmath=True)
+def _hit_row(s, mx, dy, ca, cb2, cc, o, kf):
+    """One Gaussian over a tile row's 16 pixels (the row dy from its centre): each pixel's footprint
+    (_GAUSS), weight (_WEIGHT, 0 where it is skipped) and the transmittance and liveness it leaves.
+    Returns the pixels it reached and those still live after it."""
+    n_hit = _ZERO
+    n_live = _ZERO
+    # Branch-free over the row's 16 pixels, so LLVM vectorises it.
+    for p in range(TILE_SIZE):
+        dx = s[_XS, p] - mx
+        q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
+        e = _exp_neg(-_HALF * q)
+        s[_GAUSS, p] = e * _F(q >= _ZERO)
+        alpha = min(_ALPHA_MAX, o * e)
+        ok = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO)) * s[_LIVE, p]
+        test = s[_TRANS, p] * (_ONE - alpha)
+        hit = ok * _F(test >= _T_MIN)
+        s[_LIVE, p] = s[_LIVE, p] - ok + hit
+        s[_WEIGHT, p] = hit * alpha * s[_TRANS, p]
+        s[_TRANS, p] = s[_TRANS, p] + hit * (test - s[_TRANS, p])
+        s[_LAST, p] = max(s[_LAST, p], hit * kf)
+        n_hit += hit
+        n_live += s[_LIVE, p]
+    return n_hit, n_live
+
+
 @njit(parallel=True, fastmath=True, cache=True)
 def _forward(
     offsets,
@@ -285,23 +311,7 @@ def _forward(
                             q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
                             s[_GAUSS, p] = _exp_neg(-_HALF * q) * _F(q >= _ZERO)
                     else:
-                        n_live = _ZERO
-                        # Branch-free over the row's 16 pixels, so LLVM vectorises it.
-                        for p in range(TILE_SIZE):
-                            dx = s[_XS, p] - mx
-                            q = ca * dx * dx + cb2 * dx * dy + cc * dy * dy
-                            e = _exp_neg(-_HALF * q)
-                            s[_GAUSS, p] = e * _F(q >= _ZERO)
-                            alpha = min(_ALPHA_MAX, o * e)
-                            ok = _F((alpha >= _ALPHA_MIN) & (q >= _ZERO)) * s[_LIVE, p]
-                            test = s[_TRANS, p] * (_ONE - alpha)
-                            hit = ok * _F(test >= _T_MIN)
-                            s[_LIVE, p] = s[_LIVE, p] - ok + hit
-                            s[_WEIGHT, p] = hit * alpha * s[_TRANS, p]
-                            s[_TRANS, p] = s[_TRANS, p] + hit * (test - s[_TRANS, p])
-                            s[_LAST, p] = max(s[_LAST, p], hit * kf)
-                            n_hit += hit
-                            n_live += s[_LIVE, p]
+                        n_hit, n_live = _hit_row(s, mx, dy, ca, cb2, cc, o, kf)
                         if n_hit > _ZERO:
                             for ch in range(n_ch):
                                 col = gcol[j, ch]
@@ -335,6 +345,61 @@ def _forward(
                             out_h[y, x, 0] = s[_ACC_H, p] + s[_TRANS_H, p] * background_h
                             t_final_h[y, x] = s[_TRANS_H, p]
                             n_contrib_h[y, x] = np.int32(start + np.int64(s[_LAST_H, p]))
+
+
+@njit(parallel=True, fastmath=True, cache=True)
+def _forward_slots(
+    offsets, tile_order, worker_starts, gids, means2d, conics, opac, q_max, slots, width, height, tiles_x, out
+):
+    """:func:`_forward`'s first stream, each hit adding its weight to the Gaussian's own columns of
+    ``out`` ([H, W, n_slots]; see rasterize_slots_cpu) instead of every channel's value."""
+    n_ch = out.shape[2]
+    k = slots.shape[1]
+    none = np.empty((0, 0), np.float32)
+    for w in prange(worker_starts.shape[0] - 1):
+        for ti in range(worker_starts[w], worker_starts[w + 1]):
+            tile = tile_order[ti]
+            start, end = offsets[tile], offsets[tile + 1]
+            x0 = (tile % tiles_x) * TILE_SIZE
+            y0 = (tile // tiles_x) * TILE_SIZE
+            x_lo = _F(x0) + _HALF
+            x_hi = _F(min(x0 + TILE_SIZE, width) - 1) + _HALF
+            s = np.empty((_F_ROWS + n_ch, TILE_SIZE), np.float32)
+            m = end - start
+            gx, gy, ga, gb, gc, go, _, span = _gather_tile(
+                gids, start, m, means2d, conics, opac, q_max, none, x_lo, x_hi, y0
+            )
+            for p in range(TILE_SIZE):
+                s[_XS, p] = _F(x0 + p) + _HALF
+            for r in range(TILE_SIZE):
+                y = y0 + r
+                if y >= height:
+                    break
+                for p in range(TILE_SIZE):
+                    s[_TRANS, p] = _ONE
+                    s[_LAST, p] = _ZERO
+                    s[_LIVE, p] = _ONE if x0 + p < width else _ZERO
+                s[_F_ROWS:, :] = _ZERO
+                py = _F(y) + _HALF
+                for j in range(m):
+                    if r < span[j, 0] or r >= span[j, 1]:
+                        continue
+                    dy = py - gy[j]
+                    n_hit, n_live = _hit_row(s, gx[j], dy, ga[j], _F(2.0) * gb[j], gc[j], go[j], _F(j + 1))
+                    if n_hit > _ZERO:
+                        g = gids[start + j]
+                        for c in range(k):
+                            ch = slots[g, c]
+                            if ch >= 0:
+                                for p in range(TILE_SIZE):
+                                    s[_F_ROWS + ch, p] += s[_WEIGHT, p]
+                    if n_live == _ZERO:
+                        break
+                for p in range(TILE_SIZE):
+                    x = x0 + p
+                    if x < width:
+                        for ch in range(n_ch):
+                            out[y, x, ch] = s[_F_ROWS + ch, p]
 
 
 @njit(inline="always", fastmath=True)
@@ -819,3 +884,41 @@ def rasterize_pair_cpu(
         means2d, conics, opacities, colors, background, tile_offsets, gaussian_ids, width, height, n_geo,
         means2d_h, conics_h, opacities_h, values_h,
     )  # fmt: skip
+
+
+def rasterize_slots_cpu(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    slots: Tensor,
+    n_slots: int,
+    tile_offsets: Tensor,
+    gaussian_ids: Tensor,
+    width: int,
+    height: int,
+) -> Tensor:
+    """The render of one-hot rows without making them: ``[H, W, n_slots]`` whose channel c is
+    ``sum_i w_i(p) [c in slots[i]]``, the rendering weights of the Gaussians that list column c.
+
+    Equal to :func:`rasterize_cpu` of the ``[N, n_slots]`` rows with a 1 at each of a Gaussian's
+    ``slots`` (``[N, K]`` long, -1: none; a Gaussian's columns distinct) on a zero background, with the
+    same transmittance; a hit adds to K columns instead of all n_slots. Reading a codebook by vote
+    (:mod:`langfield.model.reading`) renders one column per entry: on a 160x120 view of the built-in
+    scene (4,952 Gaussians), 175 one-hot channels took 46 ms, 13 colour and latent channels 15 ms, and
+    the 175 columns given by index 12 ms. No gradient.
+    """
+    k = slots.shape[1] if slots.dim() == 2 else -1
+    if k < 1 or slots.shape[0] != means2d.shape[0]:
+        raise ValueError(f"rasterize_slots_cpu: slots must be [N, K >= 1], got {tuple(slots.shape)}")
+    if n_slots < 1 or int(slots.max()) >= n_slots:
+        raise ValueError(f"rasterize_slots_cpu: columns must lie below n_slots={n_slots}")
+    m, cn, op = (_as_np(t) for t in (means2d, conics, opacities))
+    offs = tile_offsets.contiguous().numpy()
+    out = np.empty((height, width, n_slots), np.float32)
+    order, starts = _balance(offs, max(1, numba.get_num_threads()))
+    cols = slots.detach().to(torch.int64).contiguous().numpy()
+    _forward_slots(
+        offs, order, starts, gaussian_ids.contiguous().numpy(), m, cn, op, _q_max(op), cols, width, height,
+        math.ceil(width / TILE_SIZE), out,
+    )  # fmt: skip
+    return torch.from_numpy(out)

@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from langfield.model.reading import VOTE_SHARE, concept_groups, vote_entries
+from langfield.raster import one_hot_rows
 
 
 def _unit(degrees: list[float]) -> Tensor:
@@ -30,9 +31,9 @@ def test_concept_groups_link_chains_of_close_entries() -> None:
 
 
 def _renderer(weights: Tensor):
-    """A view of P pixels whose rendering weights are ``weights`` [P, N]: the render of per-Gaussian
-    values [N, C] is ``weights @ values`` (H = 1, W = P)."""
-    return lambda values: (weights @ values)[None]
+    """A view of P pixels whose rendering weights are ``weights`` [P, N]: the render of the Gaussians'
+    one-hot rows of columns [N, K] is ``weights @ rows`` (H = 1, W = P)."""
+    return lambda columns, n: (weights @ one_hot_rows(columns, n))[None]
 
 
 def _one_level(nearest: list[int], gaussians: list[int], weights: list[list[float]], groups: list[int], **kw):
@@ -126,8 +127,8 @@ def test_vote_matches_a_pixel_by_pixel_reference(chunk_values: int) -> None:
     weights = weights / (weights.sum(dim=1, keepdim=True) + 0.3)  # alpha < 1
     alpha = weights.sum(dim=1).reshape(h, w)
 
-    def render(values: Tensor) -> Tensor:
-        return (weights @ values).reshape(h, w, -1)
+    def render(columns: Tensor, c: int) -> Tensor:
+        return (weights @ one_hot_rows(columns, c)).reshape(h, w, -1)
 
     got = vote_entries(nearest, own, sizes, groups, alpha, render, chunk_values=chunk_values)
     expected = _reference(nearest, own, sizes, groups, weights, VOTE_SHARE)

@@ -352,6 +352,49 @@ def test_second_pass_rejects_footprints_that_differ(small_camera):
         )  # fmt: skip
 
 
+def _slots(n: int, sizes: list[int], seed: int) -> torch.Tensor:
+    """[n, len(sizes)] columns: level l's in its own range of sizes[l] after the ones before, -1 for some."""
+    g = torch.Generator().manual_seed(seed)
+    cols, base = [], 0
+    for size in sizes:
+        c = torch.randint(0, size, (n,), generator=g) + base
+        cols.append(torch.where(torch.rand(n, generator=g) < 0.2, -1, c))
+        base += size
+    return torch.stack(cols, dim=1)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_slot_render_equals_the_render_of_one_hot_rows(small_camera, seed):
+    # The vote's weights per codebook entry: numba adds each hit to a Gaussian's own columns only; the
+    # reference makes the one-hot rows and composites them as any channels, in either backend.
+    from langfield.raster import one_hot_rows, rasterize_slots
+
+    means, quats, scales, opacities, _ = random_gaussians(150, 1, seed=seed, log_scale=-2.0)
+    opacities[:10] = 0.995  # saturated pixels end early in both
+    sizes = [7, 30, 4]
+    slots = _slots(150, sizes, seed)
+    geometry = (means, quats, scales, opacities)
+    rows = one_hot_rows(slots, sum(sizes))
+    assert rows.sum(dim=1).tolist() == (slots >= 0).sum(dim=1).tolist()
+    for backend in ("torch", "numba"):
+        reference = rasterize(*geometry, rows, small_camera, backend=backend).image
+        got = rasterize_slots(*geometry, slots, sum(sizes), small_camera, backend=backend)
+        assert got.shape == (small_camera.height, small_camera.width, sum(sizes))
+        assert (got - reference).abs().max() <= 1e-5, backend
+    assert got.amax() > 0.5  # the columns carry real weight
+
+
+def test_slot_render_refuses_columns_it_has_no_channel_for(small_camera):
+    from langfield.raster.composite_cpu import rasterize_slots_cpu
+
+    m, c, o = torch.zeros(2, 2), torch.ones(2, 3), torch.ones(2)
+    lists = (torch.zeros(2, dtype=torch.int64), torch.zeros(0, dtype=torch.int64), 16, 16)
+    with pytest.raises(ValueError, match="below n_slots=3"):
+        rasterize_slots_cpu(m, c, o, torch.tensor([[0], [3]]), 3, *lists)
+    with pytest.raises(ValueError, match=r"\[N, K >= 1\]"):
+        rasterize_slots_cpu(m, c, o, torch.zeros(2, 0, dtype=torch.long), 3, *lists)
+
+
 def test_cpu_is_the_numba_backends_earlier_name(capsys) -> None:
     """``cpu`` still selects the numba kernels, said once; a field saved with it reads ``numba``."""
     import langfield.kernels as kernels_module
