@@ -69,6 +69,25 @@ def test_anchors_count_in_the_cost_and_hold_the_lines(views) -> None:
         assert _relative_error(depth, prior, line, "disparity") < 0.01
 
 
+def test_the_cost_of_held_lines_is_the_cost_computed_afresh(views) -> None:
+    # A view's search reuses where the other views' pixels landed (they hold their lines); each cost
+    # must equal that of a fresh evaluation with the same counted pixels, whichever lines moved.
+    from langfield.training.start.alignment import _Views
+
+    _, cams, depths = views
+    priors = [(1.0 / d).astype(np.float32) for d in depths]
+    start = [(1.0, 0.0), (0.6, 0.15), (1.1, -0.02)]
+    reused = _Views(cams, priors, "disparity", [None] * 3)
+    reused.freeze(start)
+    trials = [start, [start[0], (0.9, 0.05), start[2]], [start[0], (0.95, 0.0), start[2]], [(0.8, 0.1)] * 3]
+    for lines in trials:
+        fresh = _Views(cams, priors, "disparity", [None] * 3)
+        fresh.freeze(start)
+        for only in (None, 0, 1):
+            assert reused.cost(lines, only=only) == fresh.cost(lines, only=only)
+    assert len(reused.landed) < 6 * len(trials)  # the held views' landings were reused
+
+
 def test_views_without_a_line_or_without_a_usable_prior_are_left_alone(views) -> None:
     _, cams, depths = views
     priors = [(1.0 / d).astype(np.float32) for d in depths]

@@ -96,28 +96,51 @@ class _Views:
         """Fixes, per ordered pair (i, j), the pixels of i's grid that the cost counts: those that land
         in j's image under ``lines``. Counting every pixel would favour lines that bring more of them
         into view (nearer depths); counting only those in view, lines that push the hard ones out."""
-        self.counted = {}
+        self.counted, self.counted_grids, self.landed = {}, {}, {}
         n = len(lines)
         for i in range(n):
             for j in range(n):
                 if i != j:
                     self.counted[i, j] = np.ones(len(self.grids[i][1]), dtype=bool)
                     self.counted[i, j] = np.isfinite(self._errors(i, j, lines[i], lines[j]))
+        self.counted_grids, self.landed = {}, {}  # made while every pixel counted
 
     def _errors(self, i: int, j: int, line_i: Line, line_j: Line) -> np.ndarray:
         """Log-depth disagreement of the counted pixels of i's grid with view j (inf where a pixel leaves
         j's image or has no depth)."""
-        rays, values = self.grids[i]
-        rays, values = rays[self.counted[i, j]], values[self.counted[i, j]]
+        log_depth, sampled, inside = self._landing(i, j, line_i)
+        err = np.full(len(log_depth), np.inf)
+        if inside.any():
+            with np.errstate(divide="ignore", invalid="ignore"):
+                err[inside] = log_depth[inside] - np.log(_line_depth(sampled, line_j, self.depth_kind))
+        return np.where(np.isfinite(err), err, np.inf)
+
+    def _landing(self, i: int, j: int, line_i: Line) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where the counted pixels of i's grid land in view j under ``line_i``: their log-depths in j,
+        j's prior there (at the pixels inside j's image) and which are inside. A view's search holds the
+        other views' lines, so their pixels land where they did: kept until the next :meth:`freeze`."""
+        key = (i, j, line_i)
+        if key not in self.landed:
+            self.landed[key] = self._land(i, j, line_i)
+        return self.landed[key]
+
+    def _land(self, i: int, j: int, line_i: Line) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if (i, j) not in self.counted_grids:
+            rays, values = self.grids[i]
+            self.counted_grids[i, j] = rays[self.counted[i, j]], values[self.counted[i, j]]
+        rays, values = self.counted_grids[i, j]
         z = _line_depth(values, line_i, self.depth_kind)
         r_i, t_i = self.poses[i]
         world = (np.concatenate([rays * z[:, None], z[:, None]], axis=-1) - t_i) @ r_i
-        cam = self.cameras[j]
-        uv, depth = cam.project(world)
-        u, v = uv[:, 0], uv[:, 1]
+        # Camera.project's arithmetic, with j's pose read once (self.poses) rather than per call.
+        cam, (r_j, t_j) = self.cameras[j], self.poses[j]
+        p = world @ r_j.T + t_j
+        depth = p[:, 2]
+        safe = np.where(np.abs(depth) < 1e-12, 1e-12, depth)
+        u, v = cam.fx * p[:, 0] / safe + cam.cx, cam.fy * p[:, 1] / safe + cam.cy
         inside = (depth > 0) & (u >= 0) & (u <= cam.width) & (v >= 0) & (v <= cam.height)
-        err = np.full(len(z), np.inf)
         inside &= np.isfinite(z)
+        sampled = np.zeros(0, np.float32)
         if inside.any():
             sampled = cv2.remap(
                 self.priors[j],
@@ -126,9 +149,8 @@ class _Views:
                 cv2.INTER_LINEAR,
                 borderMode=cv2.BORDER_REPLICATE,
             )[0]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                err[inside] = np.log(depth[inside]) - np.log(_line_depth(sampled, line_j, self.depth_kind))
-        return np.where(np.isfinite(err), err, np.inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.log(np.where(inside, depth, 1.0)), sampled, inside
 
     def cross(self, i: int, j: int, line_i: Line, line_j: Line) -> float:
         """Mean truncated log-depth disagreement of the counted pixels of i's grid with view j."""
