@@ -200,6 +200,37 @@ def _gather_pair(gids, start, m, opac_h, q_max_h, values_h, gx, gy, ga, gb, gc, 
     return go, gv, span
 
 
+@njit(inline="always")
+def _tile(ti, tile_order, offsets, tiles_x, width):
+    """The ti-th tile of the order: where its list starts, its length, its first pixel (x0, y0) and its
+    first and last pixel centres in x."""
+    tile = tile_order[ti]
+    start = offsets[tile]
+    x0 = (tile % tiles_x) * TILE_SIZE
+    y0 = (tile // tiles_x) * TILE_SIZE
+    x_last = _F(min(x0 + TILE_SIZE, width) - 1) + _HALF
+    return start, offsets[tile + 1] - start, x0, y0, _F(x0) + _HALF, x_last
+
+
+@njit(inline="always")
+def _tile_rows(rows, x0):
+    """Every per-pixel row of a tile in one array (see _F_ROWS), its pixel centres in x filled in."""
+    s = np.empty((rows, TILE_SIZE), np.float32)
+    for p in range(TILE_SIZE):
+        s[_XS, p] = _F(x0 + p) + _HALF
+    return s
+
+
+@njit(inline="always")
+def _start_row(s, x0, width):
+    """A row's state before its first Gaussian: transmittance 1, no contributor yet, the pixels inside
+    the image live."""
+    for p in range(TILE_SIZE):
+        s[_TRANS, p] = _ONE
+        s[_LAST, p] = _ZERO
+        s[_LIVE, p] = _ONE if x0 + p < width else _ZERO
+
+
 @njit(inline="always", fastmath=True)
 def _hit_row(s, mx, dy, ca, cb2, cc, o, kf):
     """One Gaussian over a tile row's 16 pixels (the row dy from its centre): each pixel's footprint
@@ -258,31 +289,20 @@ def _forward(
     # statically, and the tiles' work differs by 2x across an image.
     for w in prange(worker_starts.shape[0] - 1):
         for ti in range(worker_starts[w], worker_starts[w + 1]):
-            tile = tile_order[ti]
-            start, end = offsets[tile], offsets[tile + 1]
-            x0 = (tile % tiles_x) * TILE_SIZE
-            y0 = (tile // tiles_x) * TILE_SIZE
-            x_lo = _F(x0) + _HALF  # the tile's first and last pixel centres in x
-            x_hi = _F(min(x0 + TILE_SIZE, width) - 1) + _HALF
-            # Every per-pixel row of the tile in one array (see _F_ROWS).
-            s = np.empty((_F_ROWS + n_ch, TILE_SIZE), np.float32)
-            m = end - start
+            start, m, x0, y0, x_lo, x_hi = _tile(ti, tile_order, offsets, tiles_x, width)
+            s = _tile_rows(_F_ROWS + n_ch, x0)
             gx, gy, ga, gb, gc, go, gcol, span = _gather_tile(
                 gids, start, m, means2d, conics, opac, q_max, colors, x_lo, x_hi, y0
             )
             goh, gvh, span_h = _gather_pair(
                 gids, start, m, opac_h, q_max_h, values_h, gx, gy, ga, gb, gc, x_lo, x_hi, y0
             )
-            for p in range(TILE_SIZE):
-                s[_XS, p] = _F(x0 + p) + _HALF
             for r in range(TILE_SIZE):
                 y = y0 + r
                 if y >= height:
                     break
+                _start_row(s, x0, width)
                 for p in range(TILE_SIZE):
-                    s[_TRANS, p] = _ONE
-                    s[_LAST, p] = _ZERO
-                    s[_LIVE, p] = _ONE if x0 + p < width else _ZERO
                     s[_TRANS_H, p] = _ONE
                     s[_LAST_H, p] = _ZERO
                     s[_LIVE_H, p] = s[_LIVE, p]
@@ -358,27 +378,16 @@ def _forward_slots(
     none = np.empty((0, 0), np.float32)
     for w in prange(worker_starts.shape[0] - 1):
         for ti in range(worker_starts[w], worker_starts[w + 1]):
-            tile = tile_order[ti]
-            start, end = offsets[tile], offsets[tile + 1]
-            x0 = (tile % tiles_x) * TILE_SIZE
-            y0 = (tile // tiles_x) * TILE_SIZE
-            x_lo = _F(x0) + _HALF
-            x_hi = _F(min(x0 + TILE_SIZE, width) - 1) + _HALF
-            s = np.empty((_F_ROWS + n_ch, TILE_SIZE), np.float32)
-            m = end - start
+            start, m, x0, y0, x_lo, x_hi = _tile(ti, tile_order, offsets, tiles_x, width)
+            s = _tile_rows(_F_ROWS + n_ch, x0)
             gx, gy, ga, gb, gc, go, _, span = _gather_tile(
                 gids, start, m, means2d, conics, opac, q_max, none, x_lo, x_hi, y0
             )
-            for p in range(TILE_SIZE):
-                s[_XS, p] = _F(x0 + p) + _HALF
             for r in range(TILE_SIZE):
                 y = y0 + r
                 if y >= height:
                     break
-                for p in range(TILE_SIZE):
-                    s[_TRANS, p] = _ONE
-                    s[_LAST, p] = _ZERO
-                    s[_LIVE, p] = _ONE if x0 + p < width else _ZERO
+                _start_row(s, x0, width)
                 s[_F_ROWS:, :] = _ZERO
                 py = _F(y) + _HALF
                 for j in range(m):
