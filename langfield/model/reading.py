@@ -104,10 +104,10 @@ def vote_entries(
     for start in range(0, len(slots), step):
         chunk = slots[start : start + step]
         # Each Gaussian's column in this chunk at each level (-1: its slot lies in another chunk).
-        where = [torch.full((sizes[lv] + 1,), -1, dtype=torch.long) for lv in levels]
+        column_of = [torch.full((sizes[lv] + 1,), -1, dtype=torch.long) for lv in levels]
         for c, (lv, s) in enumerate(chunk):
-            where[lv][s] = c
-        columns = torch.stack([where[lv][slot_of[lv]] for lv in levels], dim=1)  # [N, L]
+            column_of[lv][s] = c
+        columns = torch.stack([column_of[lv][slot_of[lv]] for lv in levels], dim=1)  # [N, L]
         weights = render(columns, len(chunk))  # [H, W, C]
         for lv in levels:
             cols = [c for c, (level, _) in enumerate(chunk) if level == lv]
@@ -120,7 +120,7 @@ def vote_entries(
             best_weight[lv] = torch.where(better, top, best_weight[lv])
             best_slot[lv] = torch.where(better, ids[arg], best_slot[lv])
             # The weight of the pixel's concept: its member slots' columns here (-1: not in this chunk).
-            member_cols = torch.where(members[lv] >= 0, where[lv][members[lv]], -1) - cols[0]
+            member_cols = torch.where(members[lv] >= 0, column_of[lv][members[lv]], -1) - cols[0]
             inside = member_cols >= 0
             carried = part.reshape(h * w, -1).gather(1, member_cols.clamp_min(0)) * inside
             concept_weight[lv] += carried.sum(dim=1).reshape(h, w)

@@ -96,14 +96,14 @@ class _Views:
         """Fixes, per ordered pair (i, j), the pixels of i's grid that the cost counts: those that land
         in j's image under ``lines``. Counting every pixel would favour lines that bring more of them
         into view (nearer depths); counting only those in view, lines that push the hard ones out."""
-        self.counted, self.counted_grids, self.landed = {}, {}, {}
+        self.counted, self.landed = {}, {}
         n = len(lines)
         for i in range(n):
             for j in range(n):
                 if i != j:
                     self.counted[i, j] = np.ones(len(self.grids[i][1]), dtype=bool)
                     self.counted[i, j] = np.isfinite(self._errors(i, j, lines[i], lines[j]))
-        self.counted_grids, self.landed = {}, {}  # made while every pixel counted
+        self.landed = {}  # made while every pixel counted
 
     def _errors(self, i: int, j: int, line_i: Line, line_j: Line) -> np.ndarray:
         """Log-depth disagreement of the counted pixels of i's grid with view j (inf where a pixel leaves
@@ -125,19 +125,14 @@ class _Views:
         return self.landed[key]
 
     def _land(self, i: int, j: int, line_i: Line) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if (i, j) not in self.counted_grids:
-            rays, values = self.grids[i]
-            self.counted_grids[i, j] = rays[self.counted[i, j]], values[self.counted[i, j]]
-        rays, values = self.counted_grids[i, j]
+        rays, values = self.grids[i]
+        rays, values = rays[self.counted[i, j]], values[self.counted[i, j]]
         z = _line_depth(values, line_i, self.depth_kind)
         r_i, t_i = self.poses[i]
         world = (np.concatenate([rays * z[:, None], z[:, None]], axis=-1) - t_i) @ r_i
-        # Camera.project's arithmetic, with j's pose read once (self.poses) rather than per call.
-        cam, (r_j, t_j) = self.cameras[j], self.poses[j]
-        p = world @ r_j.T + t_j
-        depth = p[:, 2]
-        safe = np.where(np.abs(depth) < 1e-12, 1e-12, depth)
-        u, v = cam.fx * p[:, 0] / safe + cam.cx, cam.fy * p[:, 1] / safe + cam.cy
+        cam = self.cameras[j]
+        uv, depth = cam.project(world)
+        u, v = uv[:, 0], uv[:, 1]
         inside = (depth > 0) & (u >= 0) & (u <= cam.width) & (v >= 0) & (v <= cam.height)
         inside &= np.isfinite(z)
         sampled = np.zeros(0, np.float32)
