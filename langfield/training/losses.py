@@ -111,7 +111,8 @@ def _geometry_and_language_terms(run: Run, name: str, view: ViewTargets, out: Re
     """The step's terms on the rendered depth, the scales, the latents and the opacities."""
     cfg, field, cam = run.cfg, run.field, view.camera
     terms = Terms()
-    if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0 or cfg.lambda_crossview > 0:
+    stereo = cfg.lambda_stereo > 0 and view.stereo is not None
+    if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0 or cfg.lambda_crossview > 0 or stereo:
         covered = out.alpha.detach() > 0.5
         depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
     if cfg.lambda_visibility > 0:
@@ -122,6 +123,8 @@ def _geometry_and_language_terms(run: Run, name: str, view: ViewTargets, out: Re
         others = [(v.camera, v.image) for other, v in run.views.items() if other != name]
         crossview = cross_view_loss(depth_z, covered, view.image, cam, others, cfg.lambda_dssim)
         terms.add("crossview", cfg.lambda_crossview * crossview)
+    if stereo:
+        terms.add("stereo", cfg.lambda_stereo * stereo_depth_loss(depth_z, covered, view.stereo))
     if cfg.lambda_smooth > 0:
         terms.add("smooth", cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered))
     if cfg.lambda_spread > 0 and out.depth_spread is not None:
@@ -239,6 +242,20 @@ def cross_view_loss(
     if not bool(mask.any()):
         return depth_z.sum() * 0.0
     return torch.where(mask, best, torch.zeros_like(best)).sum() / mask.sum()
+
+
+def stereo_depth_loss(depth_z: Tensor, covered: Tensor, stereo: Tensor) -> Tensor:
+    """Mean relative error ``|z - s| / s`` of the rendered z-depth [H, W] against the start's plane-sweep
+    depth ``stereo`` [H, W] (NaN where unresolved), over the pixels the sweep resolved and the field
+    covers. The sweep keeps a depth only where its window matched, was textured and another view's
+    depth agreed (:func:`~langfield.training.start.stereo.stereo_depths`): metric depth the photos
+    themselves fix, as DS-NeRF (Deng et al., CVPR 2022) supervises with SfM's sparse depth."""
+    resolved = torch.isfinite(stereo) & covered
+    if not bool(resolved.any()):
+        return depth_z.sum() * 0.0
+    target = torch.where(resolved, stereo, torch.ones_like(stereo))
+    error = (depth_z - target).abs() / target
+    return torch.where(resolved, error, torch.zeros_like(error)).sum() / resolved.sum()
 
 
 def textured(image: Tensor, min_std: float, size: int = 7) -> Tensor:

@@ -29,7 +29,7 @@ from langfield.raster import resolve_backend
 from langfield.training.config import TrainConfig, flag_of
 from langfield.training.lad import LADTarget
 from langfield.training.stages import StageClock
-from langfield.training.start import StartPoints, start_points
+from langfield.training.start import PlaneSweepConfig, StartPoints, start_points
 from langfield.training.strategy import TrainingStrategy, field_extent, stereo_surfaces
 from langfield.training.targets import (
     LanguageTargets,
@@ -96,6 +96,7 @@ def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
         fill=cfg.init_fill,
         priors=[scene.depth(c.name) for c in train_cams] if method == "depth" else None,
         depth_kind=scene.depth_kind,
+        sweep=PlaneSweepConfig(views=cfg.init_sweep),
         align=cfg.init_align,
         scene_points=read_points(scene.points_path) if method == "points" else None,
     )
@@ -282,9 +283,12 @@ def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:
     field.meta["depth"] = None if depth_in is None else {"lad": cfg.lad, "kind": scene.depth_kind}
     field.meta["training_length"] = length
     optimizers = make_optimizers(field, field_extent(field), cfg)
-    stereo = stereo_surfaces(scene.cameras("train"), start) if cfg.carve_free_space else []
-    strategy = TrainingStrategy(cfg, field, optimizers, targets, stereo)
+    surfaces = stereo_surfaces(scene.cameras("train"), start) if cfg.carve_free_space else []
+    strategy = TrainingStrategy(cfg, field, optimizers, targets, surfaces)
     cameras = {name: scene.camera(name) for name in train_names}
+    stereo = {}
+    if cfg.lambda_stereo > 0 and start.depths is not None:
+        stereo = {name: torch.from_numpy(d) for name, d in zip(train_names, start.depths, strict=True)}
     coverage, source = empty_space(scene, cfg)
     field.meta["empty_space"] = {
         "source": source,
@@ -299,6 +303,7 @@ def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:
             None if targets is None else mask_balance(targets.segments[name], cfg.language_balance),
             None if depth_in is None else LADTarget.from_view(*depth_in[name], scene.depth_kind),
             None if depth_in is None else depth_in[name],
+            stereo.get(name),
         )
         for name in train_names
     }

@@ -229,6 +229,7 @@ class ViewTargets:
             None without language.
         depth: the L_D target (None without depth priors).
         depth_input: the masks [3, H, W] and prior [H, W] it was built from (to resample it).
+        stereo: [H, W] the start's plane-sweep z-depth, NaN where unresolved (None: no sweep ran).
     """
 
     camera: Camera
@@ -238,10 +239,11 @@ class ViewTargets:
     language_weight: Tensor | None = None
     depth: LADTarget | None = None
     depth_input: tuple[Tensor, Tensor] | None = None
+    stereo: Tensor | None = None
 
     def half_size(self) -> ViewTargets:
         """The view at half its width and height (DashGaussian's coarse-to-fine training, Chen et al.
-        2025): photo and coverage area-averaged, the per-pixel targets (latents, masks, depth prior)
+        2025): photo and coverage area-averaged, the per-pixel targets (latents, masks, depth prior, stereo)
         taken at the nearest pixel centre, and the L_D target rebuilt from those."""
         cam = self.camera.scaled(2.0)
         rows = ((torch.arange(cam.height) + 0.5) * self.camera.height / cam.height).long()
@@ -256,7 +258,8 @@ class ViewTargets:
             depth = LADTarget.from_view(*depth_input, self.depth.depth_kind)
         latents = None if self.latents is None else self.latents[:, rows][:, :, cols]
         weight = None if self.language_weight is None else self.language_weight[:, rows][:, :, cols]
-        return ViewTargets(cam, image, coverage, latents, weight, depth, depth_input)
+        stereo = None if self.stereo is None else self.stereo[rows][:, cols]
+        return ViewTargets(cam, image, coverage, latents, weight, depth, depth_input, stereo)
 
 
 def area_resize(images: list[Tensor], cam: Camera) -> list[Tensor]:

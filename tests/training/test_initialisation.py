@@ -12,6 +12,7 @@ import langfield as lf
 from langfield.camera import Camera
 from langfield.synthetic import distance_to_surfaces, make_room
 from langfield.training.start import (
+    SWEEP_VIEWS,
     PlaneSweepConfig,
     dense_points,
     depth_prior_points,
@@ -53,6 +54,26 @@ def test_plane_sweep_finds_the_depth_of_a_textured_plane() -> None:
     good = score > 0.8
     assert good.mean() > 0.5
     assert np.median(np.abs(depth[good] - 2.0)) < 0.01 * 2.0
+
+
+def test_the_best_source_judges_where_the_other_sees_something_else() -> None:
+    """A source whose left half shows an occluder (texture of another depth) spoils the mean there; the
+    best source's score still finds the plane, and where both sources see it the two agree."""
+    cams, images = plane_views(z=2.0)
+    occluded = images[0].copy()
+    occluded[:, : W // 2] = plane_views(z=3.3)[1][1][:, : W // 2]
+    sources = [(cams[0], occluded), (cams[2], images[2])]
+    found = {}
+    for views in SWEEP_VIEWS:
+        depth, score = plane_sweep(cams[1], images[1], sources, 1.0, 5.0, PlaneSweepConfig(views=views))
+        found[views] = (score > 0.7) & (np.abs(depth - 2.0) < 0.02)
+    # Reference columns 15-35 land on the occluded half (the baseline shifts them by 12.5 pixels).
+    band = (slice(8, H - 8), slice(18, 34))
+    assert found["best"][band].mean() > 0.9 > 0.3 > found["mean"][band].mean()
+    both = (slice(8, H - 8), slice(60, 80))  # both sources see the plane: both ways find it
+    assert found["best"][both].mean() > 0.9 and found["mean"][both].mean() > 0.9
+    with pytest.raises(ValueError, match="views"):
+        PlaneSweepConfig(views="median")
 
 
 def test_plane_sweep_rejects_a_flat_image() -> None:
@@ -108,9 +129,10 @@ def _cell_coverage(points: np.ndarray, cam: Camera, cell: int = 8) -> float:
 
 def test_the_depth_start_covers_what_the_sweep_leaves_out(tmp_path) -> None:
     # Why "auto" picks the depth start where there are priors: the sweep resolves the textured patches
-    # of three views (measured: 51-55 % of the 8 x 8 blocks; its top-up stays near them), the aligned
-    # prior every pixel (90-100 %), at a median 0.7 % of the diagonal from the surfaces (sweep: 0.4 %;
-    # 1.5 % with the fit of before, two passes at 3x the median against the fused points).
+    # of three views (measured: 59-64 % of the 8 x 8 blocks, 51-55 % with the sources' mean score; its
+    # top-up stays near them), the aligned prior every pixel (89-100 %), at a median 0.4 % of the
+    # diagonal from the surfaces (sweep: 0.4 %; 1.5 % with the fit of before, two passes at 3x the
+    # median against the fused points).
     root = make_room(tmp_path, seed=0, width=160, height=120, n_test=0)
     scene = lf.load_scene(root)
     cams = scene.cameras("train")
@@ -122,7 +144,7 @@ def test_the_depth_start_covers_what_the_sweep_leaves_out(tmp_path) -> None:
     }
     for cam in cams:
         dense, depth = (_cell_coverage(starts[m].points, cam) for m in ("dense", "depth"))
-        assert depth > 0.85 and depth > dense + 0.3, (cam.name, dense, depth)
+        assert depth > 0.85 and depth > dense + 0.25, (cam.name, dense, depth)
     dist = distance_to_surfaces(root, starts["depth"].points)
     assert np.median(dist) < 0.01 * float(np.linalg.norm(bounds[1] - bounds[0]))
 

@@ -414,6 +414,8 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
         "orbit",
         "--lambda-crossview",
         "0.3",
+        "--lambda-stereo",
+        "0.4",
     ]
     argv = ["train", str(scene.root), "--out", str(out), "--iterations", "1", "--num-gaussians", "200"]
     assert main([*argv, "--init", "random", *flags]) == 0
@@ -423,6 +425,7 @@ def test_train_flags_set_every_regulariser(scene, tmp_path) -> None:
     expected.update(dark_backdrop=False, lambda_empty=0.5, opacity_decay=0.99, virtual_every=3)
     expected.update(virtual_resolution=0.5, half_resolution_until=0.5, lambda_visibility=0.1)
     expected.update(lambda_spread=0.05, opacity_noise=0.1, virtual_motion="orbit", lambda_crossview=0.3)
+    expected.update(lambda_stereo=0.4)
     assert {k: recorded[k] for k in expected} == expected
     assert main([*argv, "--force", "--random-background"]) == 0
     assert json.loads((out / "field.json").read_text())["config"]["random_background"] is True
@@ -758,6 +761,38 @@ def test_carving_that_would_remove_every_gaussian_removes_none() -> None:
     torch.testing.assert_close(splats["means"].detach(), points)
 
 
+def test_the_stereo_term_is_the_mean_relative_depth_error_where_the_sweep_resolved() -> None:
+    from langfield.training.losses import stereo_depth_loss
+
+    stereo = torch.tensor([[2.0, math.nan, 4.0], [1.0, 1.0, math.nan]])
+    covered = torch.tensor([[True, True, True], [True, False, True]])
+    depth = torch.tensor([[2.5, 9.0, 3.0], [1.0, 7.0, 0.1]], requires_grad=True)
+    loss = stereo_depth_loss(depth, covered, stereo)
+    assert float(loss.detach()) == pytest.approx((0.5 / 2 + 1.0 / 4 + 0.0) / 3)
+    loss.backward()
+    expected = torch.tensor([[1 / 2, 0.0, -1 / 4], [0.0, 0.0, 0.0]]) / 3  # sign(z - s) / s / count
+    torch.testing.assert_close(depth.grad, expected)
+    # Nothing resolved where the field covers: zero, still in the graph.
+    d = depth.detach().clone().requires_grad_(True)
+    none = stereo_depth_loss(d, torch.zeros_like(covered), stereo)
+    none.backward()
+    assert float(none.detach()) == 0.0 and float(d.grad.abs().sum()) == 0.0
+
+
+def test_training_with_the_stereo_term_supervises_the_views_the_sweep_resolved(scene) -> None:
+    cfg = lf.TrainConfig(iterations=4, num_gaussians=300, init="dense", language=False, depth=False,
+                         lambda_stereo=1.0)  # fmt: skip
+    field = lf.train(scene, cfg, progress=False)
+    (record,) = field.meta["loss_terms"]
+    assert record["steps"]["stereo"] == 4 and record["terms"]["stereo"] > 0
+    assert field.meta["init"]["dense"]["points"] > 0
+    off = lf.train(scene, dataclasses.replace(cfg, lambda_stereo=0.0), progress=False)
+    assert "stereo" not in off.meta["loss_terms"][0]["steps"]
+    # A random start runs no sweep: the term has nothing to compare with and is absent.
+    bare = lf.train(scene, dataclasses.replace(cfg, init="random"), progress=False)
+    assert "stereo" not in bare.meta["loss_terms"][0]["steps"]
+
+
 def test_training_with_carving_records_what_it_removed(scene) -> None:
     cfg = lf.TrainConfig(iterations=3, num_gaussians=300, language=False, depth=False, carve_free_space=True)
     field = lf.train(scene, dataclasses.replace(cfg, refine_every=2), progress=False)
@@ -788,7 +823,11 @@ def test_a_view_at_half_size_averages_the_photo_and_samples_the_targets() -> Non
     assert half.language_weight.shape == (3, 3, 4) and half.depth.shape == (3, 4)
     torch.testing.assert_close(half.depth_input[1], prior[1::2, 1::2])
     bare = ViewTargets(cam, image).half_size()
-    assert bare.coverage is None and bare.latents is None and bare.depth is None
+    assert bare.coverage is None and bare.latents is None and bare.depth is None and bare.stereo is None
+    stereo = torch.full((6, 8), math.nan)
+    stereo[1, 1], stereo[3, 5] = 2.0, 3.0
+    torch.testing.assert_close(ViewTargets(cam, image, stereo=stereo).half_size().stereo, stereo[1::2, 1::2],
+                               equal_nan=True)  # fmt: skip
 
 
 def test_language_trains_only_from_its_start_and_leaves_the_geometry_as_it_was(scene, monkeypatch) -> None:

@@ -18,12 +18,19 @@ matching`; pixel geometry is :class:`~langfield.camera.Camera`'s (``project``, `
 
 from langfield.training.start.depth_prior import INIT_ALIGNS, depth_prior_points
 from langfield.training.start.points import INIT_METHODS, MIN_POINTS, StartPoints, random_points, start_points
-from langfield.training.start.stereo import PlaneSweepConfig, dense_points, plane_sweep, stereo_depths
+from langfield.training.start.stereo import (
+    SWEEP_VIEWS,
+    PlaneSweepConfig,
+    dense_points,
+    plane_sweep,
+    stereo_depths,
+)
 
 __all__ = [
     "INIT_ALIGNS",
     "INIT_METHODS",
     "MIN_POINTS",
+    "SWEEP_VIEWS",
     "PlaneSweepConfig",
     "StartPoints",
     "dense_points",

@@ -21,7 +21,10 @@ import torch
 from langfield.camera import Camera, box_corners
 from langfield.training.start.matching import box_mean, gray, window_stats, zncc
 
-__all__ = ["PlaneSweepConfig", "dense_points", "depth_range", "plane_sweep", "stereo_depths"]
+__all__ = ["SWEEP_VIEWS", "PlaneSweepConfig", "dense_points", "depth_range", "plane_sweep", "stereo_depths"]
+
+
+SWEEP_VIEWS = ("best", "mean")
 
 
 @dataclass(frozen=True)
@@ -31,7 +34,11 @@ class PlaneSweepConfig:
     Attributes:
         planes: depth hypotheses, uniform in inverse depth between near and far.
         window: ZNCC window in pixels at 400 pixels of width (scaled with the image, odd, >= 5).
-        min_score: lowest mean ZNCC over the source views to keep a pixel.
+        min_score: lowest ZNCC (of the best source view, or the mean over them) to keep a pixel.
+        views: how a depth's score combines the source views: "best", the best one's ZNCC (a surface
+            that one source sees occluded or foreshortened is judged by the other; Kang, Szeliski and
+            Chai, CVPR 2001, keep the best of the views for the same reason), or "mean" over the
+            sources that see the pixel.
         min_texture: lowest standard deviation of the reference's grey values in the window (0-1 scale):
             flat patches match every depth.
         consistency: largest relative depth difference to another view's depth map.
@@ -46,6 +53,11 @@ class PlaneSweepConfig:
     consistency: float = 0.03
     reprojection: float = 1.0
     max_points: int = 60000
+    views: str = "best"
+
+    def __post_init__(self) -> None:
+        if self.views not in SWEEP_VIEWS:
+            raise ValueError(f"views must be one of {', '.join(SWEEP_VIEWS)}, got {self.views!r}")
 
 
 def depth_range(cam: Camera, bounds: np.ndarray) -> tuple[float, float]:
@@ -78,8 +90,9 @@ def plane_sweep(
     For each of ``cfg.planes`` depths d (uniform in 1/d), each source image is warped onto the
     reference by the homography of the plane z = d, H = K_s (R + t n^T / d) K_r^-1 (n = (0, 0, 1),
     [R | t] the reference-to-source pose), and scored by zero-normalised cross-correlation over a
-    window; the score of a depth is the mean over the sources that see the pixel. The best depth is
-    refined by a parabola through its neighbours' scores (in 1/d).
+    window; the score of a depth is the best source's (``cfg.views`` "best") or the mean over the
+    sources that see the pixel ("mean"). The best depth is refined by a parabola through its
+    neighbours' scores (in 1/d).
 
     Args:
         ref: the reference camera; ``ref_image`` its [H, W, 3] image in [0, 1].
@@ -112,8 +125,9 @@ def plane_sweep(
     # Pixel centres: OpenCV's warp maps integer pixel coordinates, so shift by the half pixel.
     shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
     unshift = np.linalg.inv(shift)
+    best = cfg.views == "best"
     for i, inv_d in enumerate(inv_depths):
-        total = np.zeros((h, w), np.float32)
+        total = np.full((h, w), -1.0 if best else 0.0, np.float32)
         count = np.zeros((h, w), np.float32)
         for rot_part, trans_part, g_src, cam in prepared:
             homography = unshift @ (rot_part + trans_part * inv_d) @ shift
@@ -124,9 +138,12 @@ def plane_sweep(
             )
             score, var_s = zncc(g_ref, mu_r, var_r, warped, size)
             valid = (box_mean(seen, size) > 0.999) & (var_s > cfg.min_texture**2)
-            total += np.where(valid, score, 0.0)
+            if best:
+                total = np.maximum(total, np.where(valid, score, -1.0))
+            else:
+                total += np.where(valid, score, 0.0)
             count += valid
-        scores[i] = np.where(count > 0, total / np.maximum(count, 1.0), -1.0)
+        scores[i] = total if best else np.where(count > 0, total / np.maximum(count, 1.0), -1.0)
     depth, best_score, interior = _best_depth(scores, inv_depths)
     # The end planes are the range's edges, not surfaces found there.
     best_score = np.where(flat | ~interior, -1.0, best_score).astype(np.float32)
