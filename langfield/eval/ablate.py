@@ -17,7 +17,8 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
 :mod:`langfield.training.start`), each one change from the defaults:
 
 - ``random-init``, ``sfm-init``, ``depth-init``: another start than the default's (``init="auto"``:
-  the depth prior where every training view has one, else the plane-sweep points);
+  the depth prior where every training view has one, else the plane-sweep points); ``mean-sweep``:
+  the sweep's score the mean over the other views rather than the best one's;
 - ``no-dropout``: without Gaussian dropout; ``no-virtual``: without the virtual-view consistency term;
   ``no-random-background``: the scene's own background colour in every iteration;
   ``no-empty-space``: no use of the empty space the photos show (alpha, a black backdrop);
@@ -31,7 +32,8 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
   training cameras' spacing where that is longer; ``virtual-occlusion``: the shifted view's occluded
   pixels left out of the virtual-view term;
 - ``anisotropy``, ``smooth`` (off by default, measured without effect): with the anisotropy penalty,
-  with edge-aware depth smoothness.
+  with edge-aware depth smoothness; ``stereo`` (off by default): the start's stereo depth on the
+  rendered depth at weight 1.
 
 Cases that would train ``full`` again are skipped with a warning: those that need what a scene lacks
 (language features, depth priors, an opaque background), and those equal to the base settings.
@@ -73,6 +75,7 @@ CASES: dict[str, dict[str, Any]] = {
     "random-init": {"init": "random"},
     "sfm-init": {"init": "sfm"},
     "depth-init": {"init": "depth"},
+    "mean-sweep": {"init_sweep": "mean"},
     "no-dropout": {"drop_gamma": 0.0},
     "opacity-noise": {"opacity_noise": 0.2},
     "orbit": {"virtual_motion": "orbit"},
@@ -89,6 +92,7 @@ CASES: dict[str, dict[str, Any]] = {
     "carve": {"carve_free_space": True},
     "visibility": {"lambda_visibility": 0.5},
     "crossview": {"lambda_crossview": 0.2},
+    "stereo": {"lambda_stereo": 1.0},
     "full-resolution": {"half_resolution_until": 0.0},
     "virtual-every-step": {"virtual_every": 1},
     "half-size-virtual": {"virtual_resolution": 0.5},
