@@ -120,11 +120,7 @@ class TrainConfig:
     )
     # DTU scan37 resolves 33 % more pixels with "best" (its views stand 35-71 degrees apart).
     init_sweep: str = in_start(
-        "best",
-        "how the plane sweep scores a depth from the other training views: the best one's match "
-        "(a surface one view sees occluded is judged by the other) or the mean over them",
-        check=OneOf(SWEEP_VIEWS),
-        flag="--init-sweep",
+        "best", "sweep score of a depth: best view or mean", check=OneOf(SWEEP_VIEWS), flag="--init-sweep"
     )
     init_fill: float = in_start(
         0.1, "random points added to the start, as a fraction of the photo points", check=Number(0.0, 10.0)
@@ -344,19 +340,13 @@ class TrainConfig:
     # The start's plane sweep resolves the textured surfaces the photos agree on (metric depth, no
     # scale to fit); real scenes without a depth prior have no other depth supervision.
     lambda_stereo: float = in_sparse_view(
-        0.0,
-        "weight of the start's stereo depth on the rendered depth, where the sweep resolved it (0: off)",
-        check=Number(0.0),
-        flag="--lambda-stereo",
+        0.0, "weight of the sweep's depth on the render (0: off)", check=Number(0.0), flag="--lambda-stereo"
     )
     visibility_tolerance: float = in_sparse_view(
         0.02, "the free-space term's relative depth tolerance", check=Number(0.0, 1.0)
     )
     lambda_smooth: float = in_sparse_view(
-        0.0,
-        "weight of edge-aware depth smoothness (0: off)",
-        check=Number(0.0),
-        flag="--lambda-smooth",
+        0.0, "weight of edge-aware depth smoothness (0: off)", check=Number(0.0), flag="--lambda-smooth"
     )
     # Mip-NeRF 360's distortion loss in squared form between the Gaussians' centres.
     lambda_spread: float = in_sparse_view(
@@ -415,10 +405,7 @@ class TrainConfig:
 
     # -- edits of the Gaussian set (langfield.training.strategy)
     densify: bool = in_strategy(
-        True,
-        "clone, split and prune Gaussians (off: keep the initial ones)",
-        check=FLAG,
-        flag="--no-densify",
+        True, "clone, split and prune Gaussians (off: keep the initial ones)", check=FLAG, flag="--no-densify"
     )
     max_gaussians: int | None = in_strategy(
         None, "most Gaussians densification may make (default: 4 x the start)", check=Whole(1, optional=True)
@@ -447,7 +434,7 @@ class TrainConfig:
     )
     carve_free_space: bool = in_strategy(
         False,
-        "remove Gaussians in front of the surfaces the training views' stereo resolves",
+        "remove Gaussians in front of the surfaces the views' stereo resolves",
         check=FLAG,
         flag="--carve-free-space",
     )
@@ -455,10 +442,7 @@ class TrainConfig:
 
     # -- language-guided outlier pruning (langfield.training.lop)
     lop: bool = in_lop(
-        True,
-        "language-guided outlier pruning (eq. 14-16); needs the language field",
-        check=FLAG,
-        flag="--no-lop",
+        True, "language-guided outlier pruning (eq. 14-16; needs language)", check=FLAG, flag="--no-lop"
     )
     lop_every: int = in_lop(LOP_INTERVAL, "iterations between LOP rounds (0: none)", check=Whole(0))
     lop_gamma: int = in_lop(LOP_GAMMA, "LOP's neighbours per Gaussian (eq. 15)", check=Whole(1))
