@@ -111,8 +111,8 @@ def _geometry_and_language_terms(run: Run, name: str, view: ViewTargets, out: Re
     """The step's terms on the rendered depth, the scales, the latents and the opacities."""
     cfg, field, cam = run.cfg, run.field, view.camera
     terms = Terms()
-    stereo = cfg.lambda_stereo > 0 and view.stereo is not None
-    if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0 or cfg.lambda_crossview > 0 or stereo:
+    use_stereo = cfg.lambda_stereo > 0 and view.stereo is not None
+    if cfg.lambda_visibility > 0 or cfg.lambda_smooth > 0 or cfg.lambda_crossview > 0 or use_stereo:
         covered = out.alpha.detach() > 0.5
         depth_z = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
     if cfg.lambda_visibility > 0:
@@ -123,7 +123,7 @@ def _geometry_and_language_terms(run: Run, name: str, view: ViewTargets, out: Re
         others = [(v.camera, v.image) for other, v in run.views.items() if other != name]
         crossview = cross_view_loss(depth_z, covered, view.image, cam, others, cfg.lambda_dssim)
         terms.add("crossview", cfg.lambda_crossview * crossview)
-    if stereo:
+    if use_stereo:
         terms.add("stereo", cfg.lambda_stereo * stereo_depth_loss(depth_z, covered, view.stereo))
     if cfg.lambda_smooth > 0:
         terms.add("smooth", cfg.lambda_smooth * depth_smoothness(depth_z, view.image, covered))

@@ -127,8 +127,8 @@ def plane_sweep(
     unshift = np.linalg.inv(shift)
     best = cfg.views == "best"
     for i, inv_d in enumerate(inv_depths):
-        total = np.full((h, w), -1.0 if best else 0.0, np.float32)
-        count = np.zeros((h, w), np.float32)
+        total = np.full((h, w), -1.0 if best else 0.0, np.float32)  # the best score, or the sum
+        count = np.zeros((h, w), np.float32)  # sources that see the pixel ("mean" only)
         for rot_part, trans_part, g_src, cam in prepared:
             homography = unshift @ (rot_part + trans_part * inv_d) @ shift
             flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
@@ -142,7 +142,7 @@ def plane_sweep(
                 total = np.maximum(total, np.where(valid, score, -1.0))
             else:
                 total += np.where(valid, score, 0.0)
-            count += valid
+                count += valid
         scores[i] = total if best else np.where(count > 0, total / np.maximum(count, 1.0), -1.0)
     depth, best_score, interior = _best_depth(scores, inv_depths)
     # The end planes are the range's edges, not surfaces found there.
