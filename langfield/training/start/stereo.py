@@ -33,7 +33,8 @@ class PlaneSweepConfig:
 
     Attributes:
         planes: depth hypotheses, uniform in inverse depth between near and far.
-        window: ZNCC window in pixels at 400 pixels of width (scaled with the image, odd, >= 5).
+        window: sets the ZNCC window's side, 2 round(window / 2 x width / 400) + 1 pixels and at least
+            5: 9 at 400 pixels of width (3.5 rounds to the even 4), 9 at fern's 504, 5 at the room's 160.
         min_score: lowest ZNCC (of the best source view, or the mean over them) to keep a pixel.
         views: how a depth's score combines the source views: "best", the best one's ZNCC (a surface
             that one source sees occluded or foreshortened is judged by the other; Kang, Szeliski and
