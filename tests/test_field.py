@@ -107,6 +107,15 @@ def test_round_trip_gives_identical_render(field, saved, scene) -> None:
         assert diff < 1e-6, name
 
 
+def test_a_colour_without_the_view_direction_is_saved_and_loaded(scene, tmp_path) -> None:
+    fld = train(scene, TrainConfig(iterations=2, num_gaussians=N, seed=0, color_freqs=-1), progress=False)
+    loaded = LanguageField.load(fld.save(tmp_path / "no_direction"))
+    assert loaded.meta["color_field"]["n_freqs"] == -1
+    cam = scene.camera(scene.names("test")[0])
+    with torch.no_grad():
+        assert (fld.render(cam).rgb - loaded.render(cam).rgb).abs().max() < 1e-6
+
+
 @pytest.mark.parametrize("fused", [False, True])
 def test_grid_rows_follow_an_optimizer_step(scene, fused: bool) -> None:
     """The colour grid's rows are memoised for unmoved means: an optimizer step must be seen, also

@@ -27,7 +27,8 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
 - ``orbit``, ``orbit-wide``: the virtual camera orbits the rendered depth instead of shifting, at the
   default baseline and at 0.3 (views beyond the training cameras);
 - ``direction-frequencies``: the colour MLP with NeRF's 4 frequencies of the view direction (the
-  default takes the direction alone);
+  default takes the direction alone); ``no-direction``: without the direction (a colour the same from
+  every side);
 - ``depth-baseline``: the virtual camera's shift a tenth of the rendered depth, not sized by the
   training cameras' spacing where that is longer; ``virtual-occlusion``: the shifted view's occluded
   pixels left out of the virtual-view term;
@@ -81,6 +82,7 @@ CASES: dict[str, dict[str, Any]] = {
     "orbit": {"virtual_motion": "orbit"},
     "orbit-wide": {"virtual_motion": "orbit", "virtual_baseline": 0.3},
     "direction-frequencies": {"color_freqs": 4},
+    "no-direction": {"color_freqs": -1},
     "depth-baseline": {"virtual_spacing": 0.0},
     "virtual-occlusion": {"virtual_occlusion": True},
     "no-virtual": {"lambda_virtual": 0.0},

@@ -229,7 +229,7 @@ def check_field_meta(meta: Any, path: Path, readable: tuple[int, ...]) -> dict[s
     c.numbers(meta, "color_field.center", 3)
     c.numbers(meta, "color_field.half_extent", 3)
     c.whole(meta, "color_field.hidden", 1)
-    c.whole(meta, "color_field.n_freqs", 0)
+    c.whole(meta, "color_field.n_freqs", -1)
     c.numbers(meta, "background", 3, optional=True)
     c.choice(meta, "backend", ("auto", *BACKENDS, *BACKEND_ALIASES), optional=True)
     bounds = meta.get("bounds")

@@ -27,11 +27,13 @@ def frequency_encoding(d: Tensor, n_freqs: int) -> Tensor:
 
     Args:
         d: [N, 3] unit view directions.
-        n_freqs: number of frequencies (NeRF uses 4 for directions).
+        n_freqs: number of frequencies (NeRF uses 4 for directions); -1 leaves the direction out.
 
     Returns:
-        [N, 3 + 6 n_freqs] encoding.
+        [N, 3 + 6 n_freqs] encoding ([N, 0] for -1).
     """
+    if n_freqs < 0:
+        return d[:, :0]
     if n_freqs == 0:
         return d
     freqs = (2.0 ** torch.arange(n_freqs, dtype=d.dtype, device=d.device)) * math.pi
@@ -56,7 +58,8 @@ class ColorField(nn.Module):
         center: [3] centre of the grid box.
         half_extent: [3] or scalar half-size of the grid box.
         hidden: width of the MLP's two hidden ReLU layers (DNGaussian: 64).
-        n_freqs: frequencies of the view-direction encoding (NeRF: 4).
+        n_freqs: frequencies of the view-direction encoding (NeRF: 4; 0: the direction alone; -1: no
+            direction, a colour the same from every side).
 
     Example:
         >>> field = ColorField(HashGridConfig(n_levels=4, log2_table_size=12), torch.zeros(3), 1.0)
@@ -74,11 +77,11 @@ class ColorField(nn.Module):
         n_freqs: int = 4,
     ) -> None:
         super().__init__()
-        if hidden < 1 or n_freqs < 0:
-            raise ValueError(f"need hidden >= 1 and n_freqs >= 0, got {hidden}, {n_freqs}")
+        if hidden < 1 or n_freqs < -1:
+            raise ValueError(f"need hidden >= 1 and n_freqs >= -1, got {hidden}, {n_freqs}")
         self.n_freqs = n_freqs
         self.grid = HashGrid(grid_cfg, center, half_extent)
-        in_dim = self.grid.out_dim + 3 + 6 * n_freqs
+        in_dim = self.grid.out_dim + (3 + 6 * n_freqs if n_freqs >= 0 else 0)
         self.mlp = nn.Sequential(
             nn.Linear(in_dim, hidden),
             nn.ReLU(),

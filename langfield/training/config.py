@@ -150,8 +150,8 @@ class TrainConfig:
     # Three views show each point from three directions: frequencies fit them and extrapolate badly.
     color_freqs: int = in_model(
         0,
-        "view-direction frequencies of the colour MLP (0: the direction alone, NeRF: 4)",
-        check=Whole(0),
+        "view-direction frequencies of the colour MLP (0: the direction alone, -1: none, NeRF: 4)",
+        check=Whole(-1),
         flag="--color-freqs",
     )
     language: bool | None = in_model(

@@ -35,6 +35,17 @@ def test_shapes_and_range() -> None:
 def test_frequency_encoding_width() -> None:
     assert frequency_encoding(_dirs(4), 4).shape == (4, 27)
     assert frequency_encoding(_dirs(4), 0).shape == (4, 3)
+    assert frequency_encoding(_dirs(4), -1).shape == (4, 0)
+
+
+def test_without_the_direction_the_colour_is_the_same_from_every_side() -> None:
+    torch.manual_seed(0)
+    field = ColorField(CFG, torch.zeros(3), 1.0, n_freqs=-1)
+    p = _points(20)
+    a, b = field(p, _dirs(20, seed=1)), field(p, _dirs(20, seed=2))
+    assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="n_freqs"):
+        ColorField(CFG, torch.zeros(3), 1.0, n_freqs=-2)
 
 
 def test_colour_depends_on_view_direction() -> None:
