@@ -39,10 +39,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "baseline, no-opacity-reg, random-init, sfm-init, depth-init, mean-sweep, no-dropout, no-virtual, "
         "no-random-background, no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, "
         "full-resolution, virtual-every-step, half-size-virtual, opacity-noise, orbit, orbit-wide, "
-        "direction-frequencies, no-direction, depth-baseline, virtual-occlusion, crossview, stereo "
-        "(default: full, no-lop, no-lad, no-depth, per-gaussian, paper-language, random-init, no-dropout, "
-        "no-virtual, no-random-background, no-empty-space, no-opacity-decay; those a scene cannot use "
-        "skipped)",
+        "both-motions, direction-frequencies, no-direction, depth-baseline, virtual-occlusion, crossview, "
+        "stereo (default: full, no-lop, no-lad, no-depth, per-gaussian, paper-language, random-init, "
+        "no-dropout, no-virtual, no-random-background, no-empty-space, no-opacity-decay; those a scene "
+        "cannot use skipped)",
     )
     add_scene_flags(p)
     p.set_defaults(func=cmd_ablate)

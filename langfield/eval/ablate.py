@@ -25,7 +25,8 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
   ``no-opacity-decay``: without Binocular-guided 3DGS's opacity decay;
 - ``opacity-noise`` (off by default): Co-Adaptation's opacity noise at s = 0.2;
 - ``orbit``, ``orbit-wide``: the virtual camera orbits the rendered depth instead of shifting, at the
-  default baseline and at 0.3 (views beyond the training cameras);
+  default baseline and at 0.3 (views beyond the training cameras); ``both-motions``: it orbits or
+  shifts, at random;
 - ``direction-frequencies``: the colour MLP with NeRF's 4 frequencies of the view direction (the
   default takes the direction alone); ``no-direction``: without the direction (a colour the same from
   every side);
@@ -81,6 +82,7 @@ CASES: dict[str, dict[str, Any]] = {
     "opacity-noise": {"opacity_noise": 0.2},
     "orbit": {"virtual_motion": "orbit"},
     "orbit-wide": {"virtual_motion": "orbit", "virtual_baseline": 0.3},
+    "both-motions": {"virtual_motion": "both"},
     "direction-frequencies": {"color_freqs": 4},
     "no-direction": {"color_freqs": -1},
     "depth-baseline": {"virtual_spacing": 0.0},

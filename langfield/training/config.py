@@ -307,8 +307,8 @@ class TrainConfig:
     )
     virtual_motion: str = in_sparse_view(
         "shift",
-        "the virtual camera shifted parallel to its image plane, or orbiting the median depth ahead of it",
-        check=OneOf(("shift", "orbit")),
+        "the virtual camera shifted in its image plane, orbiting the median depth ahead, or either at random",
+        check=OneOf(("shift", "orbit", "both")),
         flag="--virtual-motion",
     )
     virtual_start: int = in_sparse_view(0, "first iteration of the virtual-view term", check=Whole(0))

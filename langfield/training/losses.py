@@ -168,8 +168,9 @@ def virtual_view_loss(
     render onto the training image. L1 + D-SSIM over the pixels the field covers and the warp reaches.
     The shift is ``cfg.virtual_baseline`` times the median rendered depth, or ``spacing`` (scene units)
     where that is longer (:func:`langfield.training.regularisers.virtual_shift`).
-    With ``virtual_motion="orbit"`` the virtual camera turns about the median depth instead; then, or
-    with ``virtual_occlusion``, the pixels the virtual view sees occluded are left out."""
+    With ``virtual_motion="orbit"`` the virtual camera turns about the median depth instead ("both":
+    one or the other, at random); then, or with ``virtual_occlusion``, the pixels the virtual view sees
+    occluded are left out."""
     covered = out.alpha.detach() > 0.5
     depth = z_depth(out.depth / out.alpha.clamp_min(1e-4), cam)
     right, up = virtual_shift(
@@ -188,12 +189,13 @@ def virtual_view_loss(
         depth, covered = depth[..., 0], cover[..., 0] > 0.5
     if not bool(covered.any()):
         return out.rgb.sum() * 0.0
-    if cfg.virtual_motion == "orbit":
+    orbit = cfg.virtual_motion == "orbit" or (cfg.virtual_motion == "both" and rng.random() < 0.5)
+    if orbit:
         virtual = orbit_camera(cam, right, up, float(depth.detach()[covered].median()))
     else:
         virtual = shifted_camera(cam, right, up)
     seen = field.render(virtual, backend=cfg.backend, language=False, opacity_scale=keep, grid=grid)
-    if cfg.virtual_motion == "orbit" or cfg.virtual_occlusion:
+    if orbit or cfg.virtual_occlusion:
         seen_depth = z_depth(seen.depth / seen.alpha.clamp_min(1e-4), virtual)
         warped, valid = reprojection_warp(seen.rgb, depth, cam, virtual, seen_depth)
     else:

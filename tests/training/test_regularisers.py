@@ -501,6 +501,18 @@ def test_the_orbiting_virtual_view_turns_about_the_rendered_depth(scene, monkeyp
         assert np.linalg.norm(shifted_centre - cam.center) > 0
 
 
+def test_both_motions_orbit_on_some_virtual_views_and_shift_on_others(scene, monkeypatch) -> None:
+    from langfield.training import losses
+
+    taken = []
+    monkeypatch.setattr(losses, "orbit_camera", lambda *a: taken.append("orbit") or orbit_camera(*a))
+    monkeypatch.setattr(losses, "shifted_camera", lambda *a: taken.append("shift") or shifted_camera(*a))
+    cfg = lf.TrainConfig(iterations=12, num_gaussians=300, init="random", language=False, depth=False,
+                         virtual_motion="both", virtual_every=1, half_resolution_until=0.0)  # fmt: skip
+    lf.train(scene, cfg, progress=False)
+    assert len(taken) == 12 and {"orbit", "shift"} <= set(taken)
+
+
 def test_area_resize_averages_blocks_and_passes_gradient() -> None:
     from langfield.training.targets import area_resize
 
