@@ -122,21 +122,20 @@ def plane_sweep(
         rel_r = r_src @ r_ref.T
         rel_t = t_src - rel_r @ t_ref
         plane_part = _intrinsics(cam) @ np.outer(rel_t, [0.0, 0.0, 1.0]) @ k_ref_inv
-        prepared.append((_intrinsics(cam) @ rel_r @ k_ref_inv, plane_part, gray(image), cam))
+        frame = np.ones((cam.height, cam.width), np.float32)  # warped with the image: where the source sees
+        prepared.append((_intrinsics(cam) @ rel_r @ k_ref_inv, plane_part, gray(image), frame))
     # Pixel centres: OpenCV's warp maps integer pixel coordinates, so shift by the half pixel.
     shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
     unshift = np.linalg.inv(shift)
     best = cfg.views == "best"
     for i, inv_d in enumerate(inv_depths):
         total = np.full((h, w), -1.0 if best else 0.0, np.float32)  # the best score, or the sum
-        count = np.zeros((h, w), np.float32)  # sources that see the pixel ("mean" only)
-        for rot_part, trans_part, g_src, cam in prepared:
+        count = None if best else np.zeros((h, w), np.float32)  # sources that see the pixel
+        for rot_part, trans_part, g_src, frame in prepared:
             homography = unshift @ (rot_part + trans_part * inv_d) @ shift
             flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
             warped = cv2.warpPerspective(g_src, homography, (w, h), flags=flags, borderValue=0.0)
-            seen = cv2.warpPerspective(
-                np.ones((cam.height, cam.width), np.float32), homography, (w, h), flags=flags, borderValue=0.0
-            )
+            seen = cv2.warpPerspective(frame, homography, (w, h), flags=flags, borderValue=0.0)
             score, var_s = zncc(g_ref, mu_r, var_r, warped, size)
             valid = (box_mean(seen, size) > 0.999) & (var_s > cfg.min_texture**2)
             if best:
