@@ -65,11 +65,12 @@ class GridFeatures(NamedTuple):
     """The colour grid read at the Gaussians' centres, shared by every render of one set of means.
 
     Attributes:
-        corners: the cell look-up ``(rows, frac)`` of :meth:`langfield.model.hashgrid.HashGrid.corners`.
+        corners: the cell look-up ``(rows, frac)`` of :meth:`langfield.model.hashgrid.HashGrid.corners`,
+            or None where the grid was read in one walk (the numba kernels), which needs none.
         features: [N, L F] interpolated grid features (the colour MLP's view-independent input).
     """
 
-    corners: tuple[Tensor, Tensor]
+    corners: tuple[Tensor, Tensor] | None
     features: Tensor
 
 
@@ -158,11 +159,6 @@ class LanguageField(nn.Module):
         self.folder: Path | None = None
         # The language grid may reuse the colour grid's cell look-up when both share the layout.
         self._shared_cells = language is not None and _same_cells(color.grid, language.grid)
-        # The colour grid's table rows for the means as they were last rendered, (a copy of the means,
-        # rows): views rendered from unmoved Gaussians (evaluation, queries) skip the hashing. Keyed on
-        # the values, not the tensor's version counter, which writes such as the fused Adam kernel's
-        # do not bump.
-        self._rows_memo: tuple[Tensor, Tensor] | None = None
 
     @property
     def codebook(self) -> list[Tensor] | None:
@@ -455,14 +451,14 @@ class LanguageField(nn.Module):
         return Render(rgb, depth, out.alpha, out.means2d, out.radii, depth_hard, rendered_latents, spread)
 
     def grid_features(self) -> GridFeatures:
-        """The colour grid at the current means (see :class:`GridFeatures`)."""
-        means = self.splats["means"]
-        memo = self._rows_memo
-        same = memo is not None and torch.equal(memo[0], means.detach())
-        corners = self.color.grid.corners(means, memo[1] if same else None)
-        if not same:
-            self._rows_memo = (means.detach().clone(), corners[0])
-        return GridFeatures(corners, self.color.grid.interpolate(*corners))
+        """The colour grid at the current means (see :class:`GridFeatures`): in one walk where the grid
+        has it (:meth:`~langfield.model.hashgrid.HashGrid.encode`), else through the cell look-up, which
+        the language grid then reuses."""
+        means, grid = self.splats["means"], self.color.grid
+        if grid.one_walk(means):
+            return GridFeatures(None, grid.encode(means))
+        corners = grid.corners(means)
+        return GridFeatures(corners, grid.interpolate(*corners))
 
     def query(
         self,

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from langfield.kernels import notice_once, resolve_backend
-from langfield.model.hashgrid_cpu import CornersNumba, InterpolateRowsNumba
+from langfield.model.hashgrid_cpu import CornersNumba, EncodeNumba, InterpolateRowsNumba
 
 # Instant-NGP's spatial-hash primes (paper eq. 4); the first is 1 for cache coherence.
 _PRIMES = (1, 2654435761, 805459861)
@@ -237,7 +237,39 @@ class HashGrid(nn.Module):
         Returns:
             [N, L * F] features, level-major (level 0's F features first).
         """
-        return self.interpolate(*self.corners(x))
+        return self.encode(x)
+
+    def encode(self, x: Tensor, groups: int = 1) -> Tensor:
+        """Encode world positions, the features split into ``groups`` as :meth:`interpolate` splits them.
+
+        Equal to ``interpolate(*corners(x), groups=groups)``, which the ``torch`` backend computes; the
+        numba backend finds the cells and interpolates in one walk (:meth:`one_walk`), forward and
+        back, with no rows in memory between them.
+
+        Args:
+            x: [N, 3] world positions (of the table's dtype for the one-walk kernels).
+            groups: as in :meth:`interpolate`.
+
+        Returns:
+            [N, L * F] for ``groups == 1``, else [groups, N, L * F / groups].
+        """
+        if x.dim() != 2 or x.shape[-1] != 3:
+            raise ValueError(f"HashGrid expects positions of shape [N, 3], got {tuple(x.shape)}")
+        f = self.cfg.features_per_level
+        if groups < 1 or f % groups:
+            raise ValueError(f"groups must divide features_per_level={f}, got {groups}")
+        if self.one_walk(x):
+            notice_once()
+            out = EncodeNumba.apply(x, self.table.view(-1, f), self._layout(), groups)
+            return out[0] if groups == 1 else out
+        return self.interpolate(*self.corners(x), groups=groups)
+
+    def one_walk(self, x: Tensor) -> bool:
+        """Whether :meth:`encode` reads positions ``x`` in one walk
+        (:class:`~langfield.model.hashgrid_cpu.EncodeNumba`): the numba
+        backend, CPU tensors, ``x`` of the table's dtype."""
+        cpu = x.device.type == "cpu" and self.table.device.type == "cpu"
+        return resolve_backend(self.backend) == "numba" and cpu and x.dtype == self.table.dtype
 
     def corners(self, x: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Find each point's cell at every level: the table rows of its 8 corners and its place in the cell.

@@ -58,7 +58,10 @@ class LanguageHeads(nn.Module):
         """
         # Each table row holds, per grid level, subpart (2), part (2), whole (2); read back as three
         # encodings [3, N, L * 2], one per language level, which MLP_L maps in one batch.
-        h = self.grid.interpolate(*(corners or self.grid.corners(means)), groups=N_LEVELS)
+        if corners is None:
+            h = self.grid.encode(means, groups=N_LEVELS)
+        else:
+            h = self.grid.interpolate(*corners, groups=N_LEVELS)
         return self.mlp(h).permute(1, 0, 2)
 
     def grid_parameters(self) -> Iterator[nn.Parameter]:

@@ -202,6 +202,58 @@ def test_numba_kernels_match_the_reference(cfg, groups, dtype) -> None:
         torch.testing.assert_close(a, b, **tol, msg=what)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize(
+    "cfg,groups",
+    [(TINY, 1), (TINY, 2), (LANG, 1), (LANG, 3), (HashGridConfig(n_levels=15, log2_table_size=12, finest_resolution=300), 1)],
+)
+def test_one_walk_matches_the_reference(cfg, groups, dtype) -> None:
+    """encode's one numba walk (cells found and interpolated together, forward and back) against the
+    PyTorch reference's corners then interpolate: values, table and position gradients, inside the
+    box, on its faces, outside it, and many points in one cell."""
+    grid = _grid(cfg, dtype=dtype)
+    torch.manual_seed(1)
+    u = torch.cat([torch.rand(300, 3), torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [1.5, -0.2, 0.5]])])
+    x = _world(grid, torch.cat([u, torch.full((40, 3), 0.31) + 1e-3 * torch.rand(40, 3)]).to(dtype))
+    out_shape = (len(x), cfg.out_dim) if groups == 1 else (groups, len(x), cfg.out_dim // groups)
+    upstream = torch.randn(out_shape, dtype=dtype)
+    results = []
+    for backend in ("numba", "torch"):
+        grid.backend = backend
+        assert grid.one_walk(x) == (backend == "numba")
+        grid.table.grad = None
+        xr = x.clone().requires_grad_(True)
+        out = grid.encode(xr, groups)
+        (out * upstream).sum().backward()
+        results.append([out.detach(), grid.table.grad.clone(), xr.grad.clone()])
+    fast, ref = results
+    assert fast[0].shape == out_shape
+    tol = {"atol": 1e-5, "rtol": 1e-5} if dtype == torch.float32 else {"atol": 1e-12, "rtol": 1e-12}
+    # The position gradient sums one term per level, each up to |upstream| x the level's resolution.
+    largest = (upstream.abs().amax() * max(cfg.resolutions()) * 2 * grid.table.abs().amax()).item()
+    pos_atol = max(tol["atol"], 4e-7 * largest) if dtype == torch.float32 else tol["atol"]
+    for a, b, what in zip(fast, ref, ("values", "table gradient", "position gradient"), strict=True):
+        assert torch.isfinite(a).all(), what
+        atol = pos_atol if what == "position gradient" else tol["atol"]
+        torch.testing.assert_close(a, b, atol=atol, rtol=tol["rtol"], msg=what)
+    assert (fast[2][-41, :2] == 0).all()  # the point outside the box: its clamped axes pass no gradient
+
+
+def test_one_walk_refuses_nan_and_handles_no_points() -> None:
+    grid = _grid(LANG, dtype=torch.float32)
+    assert grid.encode(torch.zeros(0, 3)).shape == (0, LANG.out_dim)
+    assert grid.encode(torch.zeros(0, 3), groups=3).shape == (3, 0, LANG.out_dim // 3)
+    x = torch.rand(10, 3)
+    x[4, 1] = float("inf")  # clamped onto the box's face, as the reference does
+    assert torch.isfinite(grid.encode(x)).all()
+    x[4, 1] = float("nan")
+    with pytest.raises(ValueError, match="NaN positions"):
+        grid.encode(x)
+    assert not grid.one_walk(x.double())  # another dtype than the table's: corners, then interpolate
+    with pytest.raises(ValueError, match="groups must divide"):
+        grid.encode(x, groups=4)
+
+
 @pytest.mark.slow
 def test_numba_kernels_pass_gradcheck() -> None:
     grid = _grid(LANG)
@@ -210,7 +262,11 @@ def test_numba_kernels_pass_gradcheck() -> None:
     def encode(p, table):  # the table enters through the grid; gradcheck perturbs it in place
         return grid.interpolate(*grid.corners(p), groups=3)
 
+    def one_walk(p, table):
+        return grid.encode(p, groups=3)
+
     assert torch.autograd.gradcheck(encode, (x, grid.table))
+    assert torch.autograd.gradcheck(one_walk, (x, grid.table))
 
 
 def test_groups_split_the_plain_encoding() -> None:
