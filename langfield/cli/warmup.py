@@ -30,6 +30,10 @@ def warm_up() -> float:
     opacities = torch.full((n,), 0.5).requires_grad_(True)
     color = ColorField(HashGridConfig(n_levels=2, log2_table_size=8), torch.zeros(3), 1.0)
     features = color(means, torch.nn.functional.normalize(means, dim=-1))
+    # The grid's two-kernel path (cell look-up, then interpolation): positions of another dtype than the
+    # table's take it, and the one walk's tests compare with it.
+    grid = color.grid
+    grid.interpolate(*grid.corners(means.detach().requires_grad_(True))).sum().backward()
     camera = Camera.look_at(eye=(0, -2, 0.5), target=(0, 0, 0), width=32, height=24)
     out = rasterize(means, quats, scales, opacities, features, camera, backend="numba")
     (out.image.sum() + out.alpha.sum()).backward()

@@ -340,7 +340,8 @@ def _encode_backward(
                         go[f] = grad_out[g, i, col + k]
                         f += 1
                 # Corner by corner, each row's features contiguous (as :func:`_backward`).
-                rows[0], rows[1], rows[2], rows[3], rows[4], rows[5], rows[6], rows[7] = r0, r1, r2, r3, r4, r5, r6, r7
+                rows[0], rows[1], rows[2], rows[3] = r0, r1, r2, r3
+                rows[4], rows[5], rows[6], rows[7] = r4, r5, r6, r7
                 w[0], w[1], w[2], w[3], w[4], w[5], w[6], w[7] = w0, w1, w2, w3, w4, w5, w6, w7
                 for c in range(8):
                     r, wc = rows[c], w[c]
@@ -477,7 +478,8 @@ class EncodeNumba(torch.autograd.Function):
         _unit(xc.numpy(), grid["center"].astype(dt), two_half, consts, u, inside, nan)
         if nan[0]:
             raise ValueError("hash grid: NaN positions have no cell (the Gaussians' means went NaN)")
-        layout = (res, grid["strides"], grid["level_offset"], grid["n_dense"], grid["primes"], grid["mask"], consts)
+        cells = (grid["strides"], grid["level_offset"], grid["n_dense"], grid["primes"], grid["mask"])
+        layout = (res, *cells, consts)
         out = torch.empty(groups, n, n_levels * (table.shape[1] // groups), dtype=table.dtype)
         _encode_forward(u, *layout, table_c.numpy(), out.numpy())
         ctx.save_for_backward(table_c)

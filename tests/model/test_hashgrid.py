@@ -205,7 +205,7 @@ def test_numba_kernels_match_the_reference(cfg, groups, dtype) -> None:
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize(
     "cfg,groups",
-    [(TINY, 1), (TINY, 2), (LANG, 1), (LANG, 3), (HashGridConfig(n_levels=15, log2_table_size=12, finest_resolution=300), 1)],
+    [(TINY, 1), (TINY, 2), (LANG, 1), (LANG, 3), (HashGridConfig(n_levels=15, log2_table_size=12), 1)],
 )
 def test_one_walk_matches_the_reference(cfg, groups, dtype) -> None:
     """encode's one numba walk (cells found and interpolated together, forward and back) against the
