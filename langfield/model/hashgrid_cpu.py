@@ -219,6 +219,30 @@ def _weights8(fx, fy, fz, one):  # pragma: no cover - numba
     return w00 * gz, w00 * fz, w01 * gz, w01 * fz, w10 * gz, w10 * fz, w11 * gz, w11 * fz
 
 
+@njit(inline="always")
+def _level(level, res, level_offset, n_dense, strides, per_group):  # pragma: no cover - numba
+    """A level's cells per axis, block offset, whether it is dense, its dense row strides, and where
+    its features go in the output: feature 0 at column ``col`` of group 0, feature 1 at column ``k1``
+    of group ``g1`` (groups of ``per_group`` features)."""
+    col = level * per_group
+    return (
+        res[level], level_offset[level], level < n_dense, strides[1, level], strides[2, level],
+        col, 1 // per_group, col + 1 % per_group,
+    )  # fmt: skip
+
+
+@njit(inline="always")
+def _cell(u, i, r_l, one, dense, off, s1, s2, primes, mask):  # pragma: no cover - numba
+    """Point i's cell at the level of ``r_l`` cells per axis: its 8 corner rows (:func:`_cell_rows`)
+    and its place in the cell (fx, fy, fz), by the operations of :func:`_corners` (so the same cells);
+    the last cell's lower corner ``r_l - 1`` is in the positions' dtype, as the reference's."""
+    top = r_l - one
+    p0, p1, p2 = u[0, i] * r_l, u[1, i] * r_l, u[2, i] * r_l
+    c0, c1, c2 = min(np.floor(p0), top), min(np.floor(p1), top), min(np.floor(p2), top)
+    r = _cell_rows(np.int64(c0), np.int64(c1), np.int64(c2), dense, off, s1, s2, primes, mask)
+    return r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], p0 - c0, p1 - c1, p2 - c2
+
+
 @njit(parallel=True, cache=True)
 def _unit(x, center, two_half, consts, u, inside, nan):  # pragma: no cover - numba
     """Positions in the grid's unit cube, clamped, as :func:`_corners` makes them: ``u`` [3, N];
@@ -255,23 +279,15 @@ def _encode_forward(
     :func:`_forward` in one walk, with no [8, L, N] rows in memory. One level per task, as
     :func:`_forward`; the cells are computed with the same operations (no fastmath), so they are the
     same cells. Feature f of a row goes to group ``f // (F / G)``."""
-    n_groups = out.shape[0]
-    n_feat = table.shape[1]
+    n_feat, n_levels, n, one = table.shape[1], res.shape[0], u.shape[1], consts[2]
+    n_groups = out.shape[0]  # groups of per_group features
     per_group = n_feat // n_groups
-    n_levels, n = res.shape[0], u.shape[1]
-    one = consts[2]
     for level in prange(n_levels):
-        r_l, off = res[level], level_offset[level]
-        top = r_l - one  # the last cell's lower corner, in the positions' dtype (as the reference)
-        dense, s1, s2 = level < n_dense, strides[1, level], strides[2, level]
-        col = level * per_group
-        g1, k1 = 1 // per_group, col + 1 % per_group  # where feature 1 goes
+        r_l, off, dense, s1, s2, col, g1, k1 = _level(level, res, level_offset, n_dense, strides, per_group)
         for i in range(n):
-            p0, p1, p2 = u[0, i] * r_l, u[1, i] * r_l, u[2, i] * r_l
-            c0, c1, c2 = min(np.floor(p0), top), min(np.floor(p1), top), min(np.floor(p2), top)
-            x0, y0, z0 = np.int64(c0), np.int64(c1), np.int64(c2)
-            r0, r1, r2, r3, r4, r5, r6, r7 = _cell_rows(x0, y0, z0, dense, off, s1, s2, primes, mask)
-            w0, w1, w2, w3, w4, w5, w6, w7 = _weights8(p0 - c0, p1 - c1, p2 - c2, one)
+            cell = _cell(u, i, r_l, one, dense, off, s1, s2, primes, mask)
+            r0, r1, r2, r3, r4, r5, r6, r7, fx, fy, fz = cell
+            w0, w1, w2, w3, w4, w5, w6, w7 = _weights8(fx, fy, fz, one)
             if n_feat == 2:  # the colour grid: straight-line code, 1.2-1.3x the speed of the loop
                 a = w0 * table[r0, 0] + w1 * table[r1, 0] + w2 * table[r2, 0] + w3 * table[r3, 0]
                 b = w0 * table[r0, 1] + w1 * table[r1, 1] + w2 * table[r2, 1] + w3 * table[r3, 1]
@@ -298,27 +314,18 @@ def _encode_backward(
     :func:`_encode_forward`, its cells recomputed; the arithmetic of :func:`_backward`. A row's reads
     come before its writes: LLVM cannot tell ``table`` from ``grad_table``, so a read after a write
     waits for it (the colour grid's two features, read first: 1.6x the speed of a loop over them)."""
-    n_groups = grad_out.shape[0]
-    n_feat = table.shape[1]
+    n_feat, n_levels, n, one = table.shape[1], res.shape[0], u.shape[1], consts[2]
+    n_groups = grad_out.shape[0]  # groups of per_group features
     per_group = n_feat // n_groups
-    n_levels, n = res.shape[0], u.shape[1]
-    one = consts[2]
     for level in prange(n_levels):
-        r_l, off = res[level], level_offset[level]
-        top = r_l - one  # the last cell's lower corner, in the positions' dtype (as the reference)
-        dense, s1, s2 = level < n_dense, strides[1, level], strides[2, level]
-        col = level * per_group
-        g1, k1 = 1 // per_group, col + 1 % per_group  # where feature 1's gradient is
+        r_l, off, dense, s1, s2, col, g1, k1 = _level(level, res, level_offset, n_dense, strides, per_group)
         go = np.empty(n_feat, table.dtype)
         rows = np.empty(8, np.int64)
         w = np.empty(8, table.dtype)
         d = np.empty(8, table.dtype)
         for i in range(n):
-            p0, p1, p2 = u[0, i] * r_l, u[1, i] * r_l, u[2, i] * r_l
-            c0, c1, c2 = min(np.floor(p0), top), min(np.floor(p1), top), min(np.floor(p2), top)
-            x0, y0, z0 = np.int64(c0), np.int64(c1), np.int64(c2)
-            fx, fy, fz = p0 - c0, p1 - c1, p2 - c2
-            r0, r1, r2, r3, r4, r5, r6, r7 = _cell_rows(x0, y0, z0, dense, off, s1, s2, primes, mask)
+            cell = _cell(u, i, r_l, one, dense, off, s1, s2, primes, mask)
+            r0, r1, r2, r3, r4, r5, r6, r7, fx, fy, fz = cell
             w0, w1, w2, w3, w4, w5, w6, w7 = _weights8(fx, fy, fz, one)
             if n_feat == 2:
                 ga, gb = grad_out[0, i, col], grad_out[g1, i, k1]
