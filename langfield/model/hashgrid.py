@@ -271,7 +271,7 @@ class HashGrid(nn.Module):
         cpu = x.device.type == "cpu" and self.table.device.type == "cpu"
         return resolve_backend(self.backend) == "numba" and cpu and x.dtype == self.table.dtype
 
-    def corners(self, x: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def corners(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Find each point's cell at every level: the table rows of its 8 corners and its place in the cell.
 
         This is the part of the encoding that does not depend on the table, so grids with equal configs
@@ -279,7 +279,6 @@ class HashGrid(nn.Module):
 
         Args:
             x: [N, 3] world positions.
-            rows: these positions' rows from an earlier call, reused (they depend on the cells only).
 
         Returns:
             rows: [8, L, N] int64 rows of the flat ``[L * T]`` table, corner ``c = 4 cx + 2 cy + cz``.
@@ -290,8 +289,7 @@ class HashGrid(nn.Module):
         if resolve_backend(self.backend) == "numba" and x.device.type == "cpu":
             # One kernel for both outputs; the tensor code below is its reference.
             notice_once()
-            new_rows, frac = CornersNumba.apply(x, self._layout(), rows is None)
-            return (new_rows if rows is None else rows), frac
+            return CornersNumba.apply(x, self._layout())
         # Axis-major [3, L, N] layout keeps N innermost, so every broadcast over corners or levels below
         # runs over long contiguous rows (3-4x faster on the CPU than the point-major [N, L, 3]).
         pos = self.normalize(x).t()[:, None, :] * self.resolution.to(x.dtype)[None, :, None]
@@ -299,7 +297,7 @@ class HashGrid(nn.Module):
         # pointing at a corner R + 1 that does not exist.
         lo = torch.minimum(pos.detach().floor().to(torch.int64), self.max_corner)
         frac = pos - lo.to(x.dtype)
-        return (self._corner_rows(lo) if rows is None else rows), frac
+        return self._corner_rows(lo), frac
 
     def _layout(self) -> dict[str, Any]:
         """The grid's cell layout as numpy arrays, for :class:`CornersNumba`."""

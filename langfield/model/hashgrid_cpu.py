@@ -33,11 +33,8 @@ configure_numba()
 
 @njit(inline="always")
 def _corner_weights(fx, fy, fz, w):  # pragma: no cover - numba
-    """The 8 trilinear weights into ``w``, corner ``c = 4 cx + 2 cy + cz``."""
-    one = np.float32(1.0)
-    gx, gy, gz = one - fx, one - fy, one - fz
-    w[0], w[1], w[2], w[3] = gx * gy * gz, gx * gy * fz, gx * fy * gz, gx * fy * fz
-    w[4], w[5], w[6], w[7] = fx * gy * gz, fx * gy * fz, fx * fy * gz, fx * fy * fz
+    """The 8 trilinear weights (:func:`_weights8`) into ``w``, corner ``c = 4 cx + 2 cy + cz``."""
+    w[0], w[1], w[2], w[3], w[4], w[5], w[6], w[7] = _weights8(fx, fy, fz, np.float32(1.0))
 
 
 @njit(parallel=True, fastmath=True, cache=True)
@@ -108,41 +105,22 @@ def _backward(
                     acc += go[f] * table[r, f]
                     grad_table[r, f] += wc * go[f]
                 d[c] = acc
-            # dw_c / df_a is +-1 times the other two axes' factors: the corner pairs that differ in
-            # axis a, weighted by the other two axes' factors.
-            gx, gy, gz = one - fx, one - fy, one - fz
-            grad_frac[0, level, i] = (
-                (d[4] - d[0]) * gy * gz
-                + (d[5] - d[1]) * gy * fz
-                + (d[6] - d[2]) * fy * gz
-                + (d[7] - d[3]) * fy * fz
-            )
-            grad_frac[1, level, i] = (
-                (d[2] - d[0]) * gx * gz
-                + (d[3] - d[1]) * gx * fz
-                + (d[6] - d[4]) * fx * gz
-                + (d[7] - d[5]) * fx * fz
-            )
-            grad_frac[2, level, i] = (
-                (d[1] - d[0]) * gx * gy
-                + (d[3] - d[2]) * gx * fy
-                + (d[5] - d[4]) * fx * gy
-                + (d[7] - d[6]) * fx * fy
+            grad_frac[0, level, i], grad_frac[1, level, i], grad_frac[2, level, i] = _frac_gradient(
+                d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], fx, fy, fz, one
             )
 
 
 @njit(parallel=True, cache=True)
 def _corners(  # pragma: no cover - numba
     x, center, two_half, res, max_corner, strides, level_offset, n_dense, primes, mask, consts, rows, frac,
-    inside, write_rows,
+    inside,
 ):  # fmt: skip
     """Each point's cell at every level: rows [8, L, N] and frac [3, L, N], as HashGrid.corners.
 
     No fastmath: the float arithmetic is the reference's, operation for operation, so the cells (the
     floor of a product) are the same. ``consts`` holds 0.5, 0 and 1 in the positions' dtype (a float
     literal would widen float32 arithmetic to float64). ``inside[a, i]`` records whether the clamp into
-    the box left axis a alone, for the backward. ``write_rows`` False: the caller has the rows (they
-    depend on the cells only) and ``rows`` is not touched.
+    the box left axis a alone, for the backward.
     """
     n_levels = res.shape[0]
     half, zero, one = consts[0], consts[1], consts[2]
@@ -163,17 +141,10 @@ def _corners(  # pragma: no cover - numba
             frac[0, level, i] = p0 - x0
             frac[1, level, i] = p1 - y0
             frac[2, level, i] = p2 - z0
-            if not write_rows:
-                continue
-            off = level_offset[level]
+            s1, s2 = strides[1, level], strides[2, level]
+            r = _cell_rows(x0, y0, z0, level < n_dense, level_offset[level], s1, s2, primes, mask)
             for c in range(8):
-                cx, cy, cz = x0 + (c >> 2), y0 + ((c >> 1) & 1), z0 + (c & 1)
-                if level < n_dense:
-                    r = cx + off + cy * strides[1, level] + cz * strides[2, level]
-                else:
-                    r = (cx * primes[0]) & mask | off  # the level's block, as the reference
-                    r = r ^ ((cy * primes[1]) & mask) ^ ((cz * primes[2]) & mask)
-                rows[c, level, i] = r
+                rows[c, level, i] = r[c]
 
 
 @njit(parallel=True, fastmath=True, cache=True)
@@ -429,23 +400,22 @@ class CornersNumba(torch.autograd.Function):
     frac. The reference builds the same rows from broadcast tensors of all 8 corners (about 50 ms for
     50k Gaussians at 15 levels on 2 cores; this pass writes each row once).
 
-    ``grid``: a dict of the grid's layout as numpy arrays (:meth:`HashGrid._layout`); ``write_rows``
-    False: the caller has the rows already, and the rows returned are an empty [8, L, 0].
+    ``grid``: a dict of the grid's layout as numpy arrays (:meth:`HashGrid._layout`).
     """
 
     @staticmethod
-    def forward(ctx, x: Tensor, grid: dict, write_rows: bool = True) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+    def forward(ctx, x: Tensor, grid: dict) -> tuple[Tensor, Tensor]:  # type: ignore[override]
         xc = x.detach().contiguous()
         dt = xc.numpy().dtype
         n, n_levels = xc.shape[0], grid["res"].shape[0]
-        rows = torch.empty(8, n_levels, n if write_rows else 0, dtype=torch.int64)
+        rows = torch.empty(8, n_levels, n, dtype=torch.int64)
         frac = torch.empty(3, n_levels, n, dtype=xc.dtype)
         inside = np.empty((3, n), dtype=np.bool_)
         res, two_half = grid["res"].astype(dt), grid["two_half"].astype(dt)
         _corners(
             xc.numpy(), grid["center"].astype(dt), two_half, res, grid["max_corner"], grid["strides"],
             grid["level_offset"], grid["n_dense"], grid["primes"], grid["mask"],
-            np.array([0.5, 0.0, 1.0], dtype=dt), rows.numpy(), frac.numpy(), inside, write_rows,
+            np.array([0.5, 0.0, 1.0], dtype=dt), rows.numpy(), frac.numpy(), inside,
         )  # fmt: skip
         ctx.mark_non_differentiable(rows)
         ctx.set_materialize_grads(False)  # else autograd hands backward a zero [8, L, N] for the rows
@@ -453,14 +423,14 @@ class CornersNumba(torch.autograd.Function):
         return rows, frac
 
     @staticmethod
-    def backward(ctx, grad_rows: Tensor | None, grad_frac: Tensor | None) -> tuple[Tensor | None, None, None]:  # type: ignore[override]
+    def backward(ctx, grad_rows: Tensor | None, grad_frac: Tensor | None) -> tuple[Tensor | None, None]:  # type: ignore[override]
         if grad_frac is None:
-            return None, None, None
+            return None, None
         res, two_half, inside = ctx.saved
         g = grad_frac.contiguous().numpy()
         grad_x = torch.empty(g.shape[2], 3, dtype=grad_frac.dtype)
         _corners_backward(g, res.astype(g.dtype), two_half.astype(g.dtype), inside, grad_x.numpy())
-        return grad_x, None, None
+        return grad_x, None
 
 
 class EncodeNumba(torch.autograd.Function):
