@@ -96,8 +96,10 @@ def train(
                 opt.zero_grad(set_to_none=True)
         with stage("strategy"):
             message = run.strategy.after_optimizer_step(step)
-        if message:
+        if message:  # a LOP round ran
             bar.write(message)
+            if stop is not None:
+                stop.restart(step + 1)
         seconds = time.perf_counter() - t0
         train_seconds += seconds
         run.clock.add_iteration(seconds)

@@ -9,7 +9,9 @@ The signal is the colour term's mean over each stretch of ``LOSS_LOG_EVERY`` ite
 field.json's ``loss_terms`` records), and the language term's alike once it runs. One iteration's term
 is noisy (dropout, a random background, a random virtual camera); a 50-iteration mean is not. Only
 stretches at full resolution count: the coarse start's half-size renders fit more easily, so their
-loss is lower and no full-size stretch would beat it. The run stops at the end of a stretch when, for
+loss is lower and no full-size stretch would beat it. Likewise only the stretches after the last LOP
+round count (:meth:`PlateauStop.restart`): a round removes Gaussians, the loss rises, and stretches
+before it would make the refit look like no progress. The run stops at the end of a stretch when, for
 each watched term, the best of the last ``PATIENCE`` stretches is within ``stop_plateau`` (a fraction)
 of the best before them, and at least ``MIN_BEFORE`` full-size stretches came before those.
 
@@ -41,6 +43,10 @@ class PlateauStop:
         self.tolerance = float(tolerance)
         self.first_step = int(first_step)
         self.evidence: dict[str, Any] | None = None
+
+    def restart(self, iteration: int) -> None:
+        """Counts only the stretches from ``iteration`` on (the Gaussian set was edited there)."""
+        self.first_step = max(self.first_step, int(iteration))
 
     def levelled(self, entries: list[dict[str, Any]]) -> bool:
         """Whether the stretches so far (LossLog entries, oldest first) show every watched term levelled

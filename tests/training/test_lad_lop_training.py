@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from langfield.io.scene import load_scene
 from langfield.training.config import TrainConfig
 from langfield.training.lad import LADTarget, depth_loss, lad_loss
 from langfield.training.loop import train
+from langfield.training.strategy import TrainingStrategy
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +40,19 @@ def test_lop_rounds_are_logged_and_remove_gaussians(trained):
     assert trained.num_gaussians == rounds[1]["before"] - rounds[1]["removed"]
     # no more than tau of the Gaussians per round
     assert all(r["removed"] <= 0.05 * r["before"] for r in rounds)
+
+
+def test_no_round_where_less_than_half_an_interval_of_the_run_follows(room):
+    # 30 iterations, every 15: the round at 30 would be the last step, with no training to fill its
+    # holes; one at 15 has 15 iterations after it.
+    cfg = TrainConfig(iterations=30, lop_every=15, autoencoder_iterations=50, densify=False)
+    field = train(load_scene(room), cfg, progress=False)
+    assert [r["iteration"] for r in field.meta["lop"]] == [15]
+    strategy = SimpleNamespace(cfg=TrainConfig(iterations=1500, lop_every=1000), use_lop=True)
+    due = [t for t in range(1, 1501) if TrainingStrategy.lop_due(strategy, t)]
+    assert due == [1000]
+    strategy.cfg = TrainConfig(iterations=1499, lop_every=1000)  # 499 after it: under half
+    assert not any(TrainingStrategy.lop_due(strategy, t) for t in range(1, 1500))
 
 
 @pytest.mark.slow

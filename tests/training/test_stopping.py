@@ -53,6 +53,21 @@ def test_too_few_stretches_the_coarse_start_and_a_running_term_hold_the_stop() -
         PlateauStop(0.0, 0)
 
 
+def test_a_pruning_round_restarts_the_comparison() -> None:
+    # A LOP round at stretch 6 raises the loss; the refit that follows is progress, not a plateau.
+    values = [1.0, 0.8, 0.7, 0.65, 0.64, 0.635, 0.70, 0.66, 0.655, 0.655]
+    entries = _stretches({"color": values})
+    assert PlateauStop(0.01, 0).levelled(entries)  # compared across the round: "no gain"
+    stop = PlateauStop(0.01, 0)
+    stop.restart(6 * LOSS_LOG_EVERY)
+    assert not stop.levelled(entries)  # four stretches since the round: no baseline yet
+    stop.restart(2 * LOSS_LOG_EVERY)  # an earlier edit never moves the start back
+    assert stop.first_step == 6 * LOSS_LOG_EVERY
+    flat_after = _stretches({"color": values + [0.655] * 2})
+    assert stop.levelled(flat_after)
+    assert stop.evidence["color"]["best_before"] == pytest.approx(0.66)
+
+
 def test_an_unforced_run_stops_early_and_says_why(room_factory, monkeypatch) -> None:
     scene = load_scene(room_factory(64, 48))
     monkeypatch.setattr(T, "ITERATIONS_PER_VIEW", 100)
