@@ -4,6 +4,22 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
+
+# bench's own flags of these names size the curve's run (0: none) and the backend timing, so the
+# training settings of the same names are not offered here.
+_OWN = ("iterations", "num_gaussians")
+
+
+def curve_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """The training settings given as ``langfield train``'s flags, for the curve's run; checked as a
+    TrainConfig (a bad value names its flag) before any work."""
+    from langfield.training.config import CONFIG_FLAGS, TrainConfig
+
+    names = [n for n in CONFIG_FLAGS if n not in _OWN]
+    given = {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+    TrainConfig(**given)
+    return given
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -11,6 +27,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from langfield.io.scene import load_scene
     from langfield.synthetic import make_room
 
+    settings = curve_settings(args)
+    seed = settings.pop("seed", 0)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene_path = args.scene or make_room(out / "scene", width=160, height=120)
@@ -33,6 +51,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         language_iterations=args.language_iterations,
         language_repeats=args.language_repeats,
         extra_scenes=extra,
+        seed=seed,
+        settings=settings,
     )
     print(format_table(result))
     b = result["backends"]
@@ -45,6 +65,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Registers ``langfield bench``."""
+    from langfield.training.config import CONFIG_FLAGS, add_train_flags
+
     p = sub.add_parser("bench", help="time the backends and trace quality against training time")
     p.add_argument("--scene", default=None, help="scene folder (default: the built-in scene at 160x120)")
     p.add_argument(
@@ -87,4 +109,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="a further downscale factor to trace the curve at (repeatable), e.g. 2 for half size",
     )
+    # The curve's run takes langfield train's settings (--seed also seeds the other timed runs).
+    add_train_flags(p, tuple(n for n in CONFIG_FLAGS if n not in _OWN))
     p.set_defaults(func=cmd_bench)

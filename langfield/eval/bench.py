@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import statistics
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -221,9 +222,15 @@ def raster_throughput(
 
 
 def training_curve(
-    scene: Scene, iterations: int | None, every: int, seed: int = 0, backend: str = "auto"
+    scene: Scene,
+    iterations: int | None,
+    every: int,
+    seed: int = 0,
+    backend: str = "auto",
+    settings: Mapping[str, Any] | None = None,
 ) -> list[dict]:
-    """Trains once and records novel-view PSNR, mIoU (labelled scenes) and Gaussian count.
+    """Trains once (TrainConfig's defaults, but for ``settings``) and records novel-view PSNR, mIoU
+    (labelled scenes) and Gaussian count.
 
     A point every ``every`` iterations and at the end; evaluation time is not training time. The
     last point also carries the query latency (see :func:`query_latency`) and the run's seconds per
@@ -245,7 +252,7 @@ def training_curve(
     clock = StageClock()
     field = train(
         scene,
-        TrainConfig(iterations=iterations, seed=seed, backend=backend),
+        TrainConfig(**{"backend": backend, **(settings or {}), "iterations": iterations, "seed": seed}),
         progress=True,
         callback=record,
         callback_every=every,
@@ -446,7 +453,9 @@ def format_table(result: dict) -> str:
     for label, points in (result.get("curves") or {"": result.get("curve") or []}).items():
         if not points:
             continue
-        lines.append(f"training curve (novel views){' at ' + label if label else ''}:")
+        changed = ", ".join(f"{k}={v}" for k, v in (result.get("settings") or {}).items())
+        how = f"seed {result.get('seed', 0)}, " + (f"defaults but {changed}" if changed else "defaults")
+        lines.append(f"training curve (novel views){' at ' + label if label else ''}, {how}:")
         lines.append("  iterations   seconds    PSNR    mIoU   Gaussians")
         for p in points:
             psnr_txt = f"{p['PSNR']:7.2f}" if p.get("PSNR") is not None else "    n/a"
@@ -522,8 +531,10 @@ def run_bench(
     language_iterations: int = 100,
     language_repeats: int = 3,
     extra_scenes: dict[str, Scene] | None = None,
+    settings: Mapping[str, Any] | None = None,
 ) -> dict:
-    """Runs both benchmarks on ``scene``; writes JSON and the plot where asked.
+    """Runs both benchmarks on ``scene``; writes JSON and the plot where asked. ``settings``: TrainConfig
+    settings of the curves' runs (recorded in the result; the other timed runs keep the defaults).
 
     The training curves run first: after the backend timing has allocated and freed the reference
     rasterizer's large blocks, glibc's allocator serves the training's tensors more slowly (fern: 1.54
@@ -531,11 +542,14 @@ def run_bench(
     """
     camera = scene.cameras("train")[0]
     bounds = np.asarray(scene.bounds())
-    result: dict[str, Any] = {}
-    result["curve"] = training_curve(scene, iterations, every, seed) if iterations != 0 else []
-    result["curves"] = {f"{camera.width}x{camera.height}": result["curve"]}
-    for label, other in (extra_scenes or {}).items():  # other resolutions of the same scene
-        result["curves"][label] = training_curve(other, iterations, every, seed) if iterations != 0 else []
+    settings = dict(settings or {})
+    result: dict[str, Any] = {"seed": seed, "settings": settings}
+    scenes = {f"{camera.width}x{camera.height}": scene, **(extra_scenes or {})}  # other resolutions last
+    result["curves"] = {
+        label: training_curve(s, iterations, every, seed, settings=settings) if iterations != 0 else []
+        for label, s in scenes.items()
+    }
+    result["curve"] = next(iter(result["curves"].values()))
     result["time_to_quality"] = {label: time_to_quality(points) for label, points in result["curves"].items()}
     has_language = all(scene.feature_paths(n) is not None for n in scene.names("train"))
     result["language_overhead"] = (

@@ -224,11 +224,34 @@ def test_train_language_decode_flag_reaches_the_field(scene_dir, tmp_path) -> No
 # ---------------------------------------------------------------- bench / demo
 
 
+def test_bench_takes_the_training_settings_for_its_curve(scene_dir, tmp_path, monkeypatch, capsys) -> None:
+    import langfield.eval.bench as bench
+
+    seen = {}
+    monkeypatch.setattr(bench, "run_bench", lambda scene, **kw: seen.update(kw) or {})
+    monkeypatch.setattr(bench, "format_table", lambda result: "")
+    base = ["bench", "--scene", str(scene_dir), "--out", str(tmp_path / "b"), "--iterations", "0"]
+    with contextlib.suppress(KeyError):  # the stand-in result has no backends to print
+        main([*base, "--seed", "2", "--half-resolution-until", "0.2", "--num-gaussians", "300"])
+    assert seen["settings"] == {"half_resolution_until": 0.2} and seen["seed"] == 2
+    assert seen["num_gaussians"] == 300 and seen["iterations"] == 0  # bench's own flags of those names
+    seen.clear()
+    assert main([*base, "--drop-gamma", "-1"]) == 2 and not seen  # refused before any work
+    assert "--drop-gamma" in capsys.readouterr().err
+
+
 @pytest.mark.slow
-def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
+def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys, monkeypatch) -> None:
+    import langfield.eval.bench as bench
+
+    configs = []
+    train = bench.train
+    spy = lambda scene, cfg, **kw: configs.append(cfg) or train(scene, cfg, **kw)  # noqa: E731
+    monkeypatch.setattr(bench, "train", spy)
     out = tmp_path / "bench"
     json_path = out / "b.json"
-    args = ["bench", "--scene", str(scene_dir), "--iterations", "20", "--every", "10"]
+    args = ["bench", "--scene", str(scene_dir), "--iterations", "20", "--every", "10", "--seed", "1"]
+    args += ["--half-resolution-until", "0.5"]
     args += ["--num-gaussians", "300", "--out", str(out), "--json", str(json_path)]
     args += ["--overhead-iterations", "12", "--also-resolution", "2"]
     args += ["--language-iterations", "6", "--language-repeats", "1"]
@@ -255,6 +278,10 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     assert list(result["curves"]) == [f"{W}x{H}", f"{W // 2}x{H // 2}"]
     assert all(0 <= p["mIoU"] <= 1 for c in result["curves"].values() for p in c)  # the room is labelled
     assert result["curve"][-1]["query_ms_per_view"]["ms"] > 0
+    # The settings reach the curves' runs (both resolutions), and the others keep the defaults.
+    assert result["settings"] == {"half_resolution_until": 0.5} and result["seed"] == 1
+    assert [c.half_resolution_until for c in configs[:2]] == [0.5, 0.5]
+    assert all(c.half_resolution_until == 0.33 and c.seed == 1 for c in configs[2:]) and configs[2:]
     stages = result["curve"][-1]["stages"]  # the curve's run, timed per stage
     assert stages["iterations"] == 20 and stages["stages"]["render"]["seconds"] > 0
     assert sum(v["share"] for v in stages["stages"].values()) == pytest.approx(1.0)
@@ -268,6 +295,7 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys) -> None:
     assert result["curve"][-1]["stopped"] == {"reason": "forced", "iteration": 20, "length": 20}
     printed = capsys.readouterr().out
     assert "faster than torch" in printed and "within 0.3 dB of the last point" in printed
+    assert "seed 1, defaults but half_resolution_until=0.5" in printed
     assert "Gaussian-pixel pairs" in printed and "iterations went: " in printed
     assert "trained the forced length, 20 iterations" in printed
 
