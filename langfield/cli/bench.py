@@ -15,9 +15,9 @@ def curve_settings(args: argparse.Namespace) -> dict[str, Any]:
     """The training settings given as ``langfield train``'s flags, for the curve's run; checked as a
     TrainConfig (a bad value names its flag) before any work."""
     from langfield.training.config import CONFIG_FLAGS, TrainConfig
+    from langfield.training.settings import given_flags
 
-    names = [n for n in CONFIG_FLAGS if n not in _OWN]
-    given = {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
+    given = given_flags(args, (n for n in CONFIG_FLAGS if n not in _OWN))
     TrainConfig(**given)
     return given
 

@@ -35,6 +35,7 @@ from langfield.training.settings import (
     add_flags,
     bounds_arg,
     check_fields,
+    given_flags,
     is_box,
     refuse,
     setting,
@@ -496,5 +497,4 @@ def add_train_flags(parser: argparse.ArgumentParser, names: tuple[str, ...] | No
 def config_from_flags(args: argparse.Namespace, **fixed: Any) -> TrainConfig:
     """The TrainConfig the parsed flags give: each flag that was given, the rest at their defaults
     (checked: a bad value names its flag)."""
-    given = {name: getattr(args, name) for name in CONFIG_FLAGS if getattr(args, name, None) is not None}
-    return TrainConfig(**{**given, **fixed})
+    return TrainConfig(**{**given_flags(args, CONFIG_FLAGS), **fixed})

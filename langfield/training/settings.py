@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -160,6 +160,12 @@ def add_flags(
         if group not in made:
             made[group] = parser.add_argument_group(groups[group])
         made[group].add_argument(flag, dest=f.name, default=None, **_flag_options(f))
+
+
+def given_flags(args: argparse.Namespace, names: Iterable[str]) -> dict[str, Any]:
+    """The settings among ``names`` whose flags :func:`add_flags` parsed a value for (unset flags are
+    None)."""
+    return {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
 
 
 def _flag_options(f: dataclasses.Field) -> dict[str, Any]:

@@ -105,8 +105,8 @@ class TrainingStrategy:
     def lop_due(self, iteration: int) -> bool:
         """Whether a LOP round runs after ``iteration`` iterations: every ``lop_every``, where at least
         half an interval of the run follows. A round removes up to tau of the Gaussians and leaves holes
-        that the training after it fills; at the run's last step nothing would (the room, 1000
-        iterations, its round at the end: 26.66 dB against 29.01 without it, docs/decisions.md)."""
+        that the training after it fills; at the run's last step nothing would (docs/decisions.md,
+        ``lop_every``)."""
         every = self.cfg.lop_every
         return self.use_lop and iteration % every == 0 and 2 * (self.cfg.iterations - iteration) >= every
 
