@@ -66,7 +66,7 @@ def _look(field, scene, out: Path) -> str:
     of the viewer answering 'sofa' where a browser can be driven; what was written, in words."""
     import cv2
 
-    from langfield.viewer.browser import browser_missing, screenshot_viewer
+    from langfield.viewer.browser import browser_missing, screenshot_viewer, wait_for
     from langfield.viewer.paths import orbit
     from langfield.viewer.server import Viewer
     from langfield.viewer.video import path_frames, read_video, write_video
@@ -85,8 +85,11 @@ def _look(field, scene, out: Path) -> str:
         return f"{written}; no screenshot of the viewer: {reason}"
     viewer = Viewer(field, scene, port=0, save=out / "selections")
     try:
-        answered = lambda: viewer.answer.phrase == "sofa"  # noqa: E731
-        shot = screenshot_viewer(viewer.url, out / "viewer.jpg", "sofa", answered)
+        # Set on the server, as if typed: the page opens with the answer shown (see screenshot_viewer).
+        viewer.phrase_box.value = "sofa"
+        if not wait_for(lambda: viewer.answer.phrase == "sofa"):
+            raise RuntimeError(f"the viewer did not answer 'sofa': {viewer.answer.text}")
+        shot = screenshot_viewer(viewer.url, out / "viewer.jpg")
     except Exception as err:  # a picture for the README: never a reason to fail the demo
         return f"{written}; no screenshot of the viewer: {err}"
     finally:

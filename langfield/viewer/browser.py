@@ -104,22 +104,19 @@ def splats_drawn(shot: np.ndarray) -> bool:
     return float(scene_region(shot).std(axis=(0, 1)).mean()) > 10.0
 
 
-def screenshot_viewer(url: str, path: str | Path, phrase: str | None = None, answered=None) -> Path:
-    """Writes the viewer's page at ``url`` to ``path`` (its format by the suffix) once the splats are drawn;
-    with ``phrase``, after typing it and once ``answered()`` holds (the viewer has shown the answer)."""
+def screenshot_viewer(url: str, path: str | Path) -> Path:
+    """Writes the viewer's page at ``url`` to ``path`` (its format by the suffix) once the splats are drawn.
+
+    Every screenshot is a frame, and on a CPU a frame of the splats takes seconds (SwiftShader); so does
+    typing into the page, whose actionability checks wait for frames too. A caller that wants the
+    viewer answering a phrase sets it on the server first (``viewer.phrase_box.value``): the page then
+    opens with the answer, and the first frame that shows the splats is the one kept."""
     path = Path(path)
     with open_page(url) as page:
         # viser's notice of software WebGL covers the scene's top left; hidden by a style rule rather than
         # its close button, whose click waits for a frame.
         page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
         phrase_box(page).wait_for(timeout=30_000)
-        # Every screenshot is a frame, and on a CPU a frame of the splats takes seconds (SwiftShader): so
-        # the phrase is typed before any frame is asked for, and the first frame that shows the splats
-        # after the answer is the one kept.
-        if phrase is not None:
-            phrase_box(page).fill(phrase)
-            if answered is not None and not wait_for(answered):
-                raise RuntimeError(f"the viewer did not answer {phrase!r}")
         page.wait_for_timeout(500)  # the heat map image arrives and the splats' sort settles
         last: list[np.ndarray] = []
 
