@@ -429,9 +429,12 @@ class TrainConfig:
     # Binocular-guided 3DGS's decay (0.995): Gaussians the images keep asking for recover, the rest fade.
     opacity_decay: float = in_strategy(
         0.995,
-        "every opacity times this factor each iteration after refine_start (1: off)",
+        "every opacity times this factor each iteration from opacity_decay_start (1: off)",
         check=Number(0.0, 1.0, open_low=True),
         flag="--opacity-decay",
+    )
+    opacity_decay_start: int | None = in_strategy(
+        None, "first iteration of the opacity decay (default: refine_start)", check=Whole(0, optional=True)
     )
     carve_free_space: bool = in_strategy(
         False,
