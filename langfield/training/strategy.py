@@ -92,8 +92,7 @@ class TrainingStrategy:
         """Opacity decay from ``opacity_decay_start``, and a LOP round every ``lop_every`` iterations;
         returns a line on the round, if one ran."""
         cfg = self.cfg
-        decay_start = cfg.refine_start if cfg.opacity_decay_start is None else cfg.opacity_decay_start
-        if cfg.opacity_decay < 1.0 and step >= decay_start:
+        if cfg.opacity_decay < 1.0 and step >= cfg.opacity_decay_start:
             with torch.no_grad():
                 logits = self.field.splats["opacity_logits"]
                 logits.copy_(torch.logit(torch.sigmoid(logits) * cfg.opacity_decay, eps=1e-6))

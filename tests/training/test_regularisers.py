@@ -665,7 +665,7 @@ def test_random_background_only_without_alpha_and_the_empty_space_term_change_tr
 def test_opacity_decay_fades_the_gaussians_from_its_start(scene) -> None:
     base = dict(
         iterations=4, num_gaussians=300, init="random", language=False, depth=False, densify=False,
-        lambda_opacity=0.0, refine_start=1,
+        lambda_opacity=0.0, opacity_decay_start=1,
     )  # fmt: skip
     plain = lf.train(scene, lf.TrainConfig(**base, opacity_decay=1.0), progress=False)
     decayed = lf.train(scene, lf.TrainConfig(**base, opacity_decay=0.5), progress=False)
@@ -673,8 +673,9 @@ def test_opacity_decay_fades_the_gaussians_from_its_start(scene) -> None:
     ratio = float(opacities(decayed.splats).mean() / opacities(plain.splats).mean())
     # Three decayed iterations (1, 2, 3) halve every opacity three times; Adam moves a logit by ~lr.
     assert 0.125 * 0.7 < ratio < 0.125 * 1.4
-    # opacity_decay_start moves the decay apart from the refinements: from iteration 3, one halving.
-    later = lf.train(scene, lf.TrainConfig(**base, opacity_decay=0.5, opacity_decay_start=3), progress=False)
+    # From iteration 3: one halving.
+    later_cfg = lf.TrainConfig(**{**base, "opacity_decay_start": 3}, opacity_decay=0.5)
+    later = lf.train(scene, later_cfg, progress=False)
     ratio = float(opacities(later.splats).mean() / opacities(plain.splats).mean())
     assert 0.5 * 0.7 < ratio < 0.5 * 1.4
     with pytest.raises(ValueError, match="opacity_decay"):
