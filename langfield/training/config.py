@@ -79,8 +79,7 @@ class TrainConfig:
         flag="--iterations",
         parse=int,
     )
-    # At 1 % fern stopped at 1200 of 1500 iterations 0.09 dB short of the whole run; at 0.5 % at 1300,
-    # 0.03 dB short (docs/decisions.md).
+    # 0.5 %: fern stops at 1300 of 1500 iterations 0.03 dB short of the whole run (1 %: 0.09 dB).
     stop_plateau: float = in_run(
         0.005,
         "end an unforced run once 200 iterations better the best fitting loss by under this fraction (0: no)",
@@ -411,14 +410,11 @@ class TrainConfig:
     max_gaussians: int | None = in_strategy(
         None, "most Gaussians densification may make (default: 4 x the start)", check=Whole(1, optional=True)
     )
-    # A first refinement at 400 (half size still) prunes what the start left transparent before the
-    # full-size iterations pay for it; the decay still waits for 500 (docs/decisions.md).
+    # 3DGS refines from 600; from 400 (half size still) the start's transparent Gaussians go sooner.
     refine_start: int = in_strategy(300, "first densification after this iteration", check=Whole(0))
     refine_every: int = in_strategy(100, "iterations between densifications", check=Whole(1))
     refine_stop: int | None = in_strategy(
-        None,
-        "last densification iteration (default: the run's end, DNGaussian)",
-        check=Whole(0, optional=True),
+        None, "last densification iteration (default: the run's end)", check=Whole(0, optional=True)
     )
     grad_threshold: float = in_strategy(
         0.0013,
