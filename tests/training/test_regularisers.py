@@ -674,7 +674,7 @@ def test_opacity_decay_fades_the_gaussians_from_its_start(scene) -> None:
     # Three decayed iterations (1, 2, 3) halve every opacity three times; Adam moves a logit by ~lr.
     assert 0.125 * 0.7 < ratio < 0.125 * 1.4
     # From iteration 3: one halving.
-    later_cfg = lf.TrainConfig(**{**base, "opacity_decay_start": 3}, opacity_decay=0.5)
+    later_cfg = lf.TrainConfig(**dict(base, opacity_decay_start=3), opacity_decay=0.5)
     later = lf.train(scene, later_cfg, progress=False)
     ratio = float(opacities(later.splats).mean() / opacities(plain.splats).mean())
     assert 0.5 * 0.7 < ratio < 0.5 * 1.4
