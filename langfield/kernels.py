@@ -62,6 +62,7 @@ KERNEL_MODULES = (
     "langfield.raster.binning_cpu",
     "langfield.raster.composite_cpu",
     "langfield.model.hashgrid_cpu",
+    "langfield.training.ssim_cpu",
 )
 
 _noticed = False

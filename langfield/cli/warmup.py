@@ -12,14 +12,15 @@ from langfield.kernels import notice_once, uncompiled_kernels
 from langfield.model.colour import ColorField
 from langfield.model.hashgrid import HashGridConfig
 from langfield.raster import rasterize, rasterize_slots
+from langfield.training.ssim import ssim_map
 
 __all__ = ["main", "warm_up"]
 
 
 def warm_up() -> float:
     """Compiles (or loads) every kernel by rendering a few Gaussians forward and backward with the
-    ``numba`` backend and a hash-grid colour field, as training does, and their weights per codebook
-    entry, as a query does. Returns the seconds it took."""
+    ``numba`` backend and a hash-grid colour field, as training does (with the loss's SSIM), and their
+    weights per codebook entry, as a query does. Returns the seconds it took."""
     t0 = time.perf_counter()
     notice_once()
     generator = torch.Generator().manual_seed(0)
@@ -39,6 +40,7 @@ def warm_up() -> float:
     (out.image.sum() + out.alpha.sum()).backward()
     slots = torch.randint(0, 4, (n, 1), generator=generator)  # a vote's weights per codebook entry
     rasterize_slots(means.detach(), quats.detach(), scales.detach(), opacities.detach(), slots, 4, camera)
+    ssim_map(out.image.detach().requires_grad_(True), out.image.detach(), backend="numba").sum().backward()
     return time.perf_counter() - t0
 
 

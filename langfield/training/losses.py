@@ -85,7 +85,7 @@ def loss_terms(run: Run, step: int, name: str, render: StepRender) -> tuple[Tens
     stage = run.clock.stage
     image = Terms()
     with stage("colour loss"):
-        image.add("color", color_loss(out.rgb, render.target, cfg.lambda_dssim))
+        image.add("color", color_loss(out.rgb, render.target, cfg.lambda_dssim, cfg.backend))
         if view.coverage is not None and cfg.lambda_empty > 0:
             image.add("empty", cfg.lambda_empty * (out.alpha * (1.0 - view.coverage)).mean())
     virtual_step = step >= cfg.virtual_start and (step - cfg.virtual_start) % cfg.virtual_every == 0
@@ -121,7 +121,9 @@ def _geometry_and_language_terms(run: Run, name: str, view: ViewTargets, out: Re
         run.rendered[name] = (cam, depth_z.detach(), covered)
     if cfg.lambda_crossview > 0:
         others = [(v.camera, v.image) for other, v in run.views.items() if other != name]
-        crossview = cross_view_loss(depth_z, covered, view.image, cam, others, cfg.lambda_dssim)
+        crossview = cross_view_loss(
+            depth_z, covered, view.image, cam, others, cfg.lambda_dssim, backend=cfg.backend
+        )
         terms.add("crossview", cfg.lambda_crossview * crossview)
     if use_stereo:
         terms.add("stereo", cfg.lambda_stereo * stereo_depth_loss(depth_z, covered, view.stereo))
@@ -146,10 +148,11 @@ def _geometry_and_language_terms(run: Run, name: str, view: ViewTargets, out: Re
     return terms
 
 
-def color_loss(rendered: Tensor, target: Tensor, lambda_dssim: float = 0.2) -> Tensor:
-    """L_C = (1 - lambda) L1 + lambda (1 - SSIM) on images [H, W, 3]."""
+def color_loss(rendered: Tensor, target: Tensor, lambda_dssim: float = 0.2, backend: str = "auto") -> Tensor:
+    """L_C = (1 - lambda) L1 + lambda (1 - SSIM) on images [H, W, 3] (SSIM by ``backend``, see
+    :func:`~langfield.training.ssim.ssim_map`)."""
     l1 = (rendered - target).abs().mean()
-    d_ssim = 1.0 - ssim_map(rendered, target).mean()
+    d_ssim = 1.0 - ssim_map(rendered, target, backend=backend).mean()
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * d_ssim
 
 
@@ -204,7 +207,7 @@ def virtual_view_loss(
     if float(mask.sum()) < 1:
         return out.rgb.sum() * 0.0
     l1 = ((warped - image).abs().mean(-1) * mask).sum() / mask.sum()
-    d_ssim = ((1.0 - ssim_map(warped, image)[0].mean(0)) * mask).sum() / mask.sum()
+    d_ssim = ((1.0 - ssim_map(warped, image, backend=cfg.backend)[0].mean(0)) * mask).sum() / mask.sum()
     return (1.0 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * d_ssim
 
 
@@ -216,6 +219,7 @@ def cross_view_loss(
     others: list[tuple[Camera, Tensor]],
     lambda_dssim: float = 0.2,
     min_std: float = 0.02,
+    backend: str = "auto",
 ) -> Tensor:
     """Multi-view photometric consistency between the training photos: this view's rendered z-depth
     [H, W] warps each other photo onto ``image`` [H, W, 3] (:func:`reprojection_warp`), and where the
@@ -230,12 +234,13 @@ def cross_view_loss(
         min_std: pixels whose 7 x 7 neighbourhood in ``image`` varies less (standard deviation of the
             grey level) are left out: a white table or a saturated highlight matches its like at any
             depth, and there the term would only move the surface at random.
+        backend: SSIM's (:func:`~langfield.training.ssim.ssim_map`).
     """
     best = None
     for other_cam, other_image in others:
         warped, valid = reprojection_warp(other_image, depth_z, cam, other_cam)
         error = (1.0 - lambda_dssim) * (warped - image).abs().mean(-1)
-        error = error + lambda_dssim * (1.0 - ssim_map(warped, image)[0].mean(0))
+        error = error + lambda_dssim * (1.0 - ssim_map(warped, image, backend=backend)[0].mean(0))
         error = torch.where(valid, error, torch.full_like(error, math.inf))
         best = error if best is None else torch.minimum(best, error)
     if best is None:

@@ -1,8 +1,10 @@
-"""The training loss's SSIM: kornia's formula with its five local moments filtered in one call.
+"""The training loss's SSIM: kornia's formula, with its five local moments filtered together.
 
-``kornia.metrics.ssim`` filters the moments one by one; for the small images of a training step, one
-call on the stacked moments is about twice as fast. Same window, reflect padding and formula, equal to
-kornia up to float rounding (tests/training/test_ssim.py checks values and gradients against it).
+``kornia.metrics.ssim`` filters the moments one by one. With a gradient recorded, the ``numba`` backend
+(:mod:`langfield.training.ssim_cpu`) computes the map and its gradient in its own kernels; the
+``torch`` backend, the reference, filters the stacked moments in one call (about twice as fast as
+kornia's on a training step's small images). Same window, reflect padding and formula, equal to kornia
+up to float rounding (tests/training/test_ssim.py checks values and gradients against it).
 """
 
 from __future__ import annotations
@@ -11,16 +13,22 @@ import kornia
 import torch
 from torch import Tensor
 
+from langfield.kernels import resolve_backend
 from querying.metrics import ssim_window, to_bchw
 
 
-def ssim_map(prediction: Tensor, target: Tensor, window: int = 11) -> Tensor:
+def ssim_map(prediction: Tensor, target: Tensor, window: int = 11, backend: str = "auto") -> Tensor:
     """Per-pixel SSIM [1, C, H, W] of images [H, W, C] (a Gaussian window of 11, as 3DGS; shrunk to
-    images smaller than it). With a gradient recorded the moments are filtered together; without one,
-    kornia computes it as it is."""
+    images smaller than it). With a gradient recorded the moments are filtered together (``backend``
+    "torch": one PyTorch call; "numba" or "auto": :class:`~langfield.training.ssim_cpu.SSIMMapNumba`);
+    without one, kornia computes it as it is."""
     p, t = to_bchw(prediction), to_bchw(target)
     size = ssim_window(p.shape[-2], p.shape[-1], window)
     if torch.is_grad_enabled() and (p.requires_grad or t.requires_grad):
+        if resolve_backend(backend) == "numba":
+            from langfield.training.ssim_cpu import SSIMMapNumba
+
+            return SSIMMapNumba.apply(prediction, target, size)
         return _ssim_map_stacked(p, t, size)
     return kornia.metrics.ssim(p, t, size)
 
