@@ -39,7 +39,8 @@ def _kornia_with_grads(a, b, weights):
 
 @pytest.mark.parametrize("backend", ["torch", "numba"])
 @pytest.mark.parametrize(
-    "shape", [(48, 64, 3), (64, 48, 3), (5, 7, 3), (12, 13, 1), (2, 30, 3), (30, 2, 3), (1, 1, 3), (11, 11, 5)]
+    "shape",
+    [(48, 64, 3), (64, 48, 3), (5, 7, 3), (12, 13, 1), (2, 30, 3), (30, 2, 3), (1, 1, 3), (11, 11, 5)],
 )
 def test_ssim_map_with_gradient_matches_kornia_values_and_gradients(backend, shape) -> None:
     # The torch path filters the five moments in one call; kornia filters them one by one; the numba
