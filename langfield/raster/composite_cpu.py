@@ -326,9 +326,8 @@ def _forward(
                     cb2 = _F(2.0) * cb
                     dy = py - gy[j]
                     miss = r < span[j, 0] or r >= span[j, 1]
-                    # A spent second stream is skipped. The list holds every Gaussian at the second
-                    # opacity's extent (fern's training view: 1.7x the first stream's intersections,
-                    # median opacity 0.04), and each computed its footprint here for nothing.
+                    # A spent second stream is skipped: the list holds every Gaussian at the second
+                    # opacity's larger extent, so most of a row's list comes after that stream is spent.
                     miss_h = n_live_h == _ZERO
                     if not miss_h:
                         lo_h, hi_h = _span_h(span_h, j, gqh, gx, gy, ga, gb, gc, x_lo, x_hi, y0)

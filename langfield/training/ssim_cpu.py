@@ -38,11 +38,11 @@ _TWO = np.float32(2.0)
 
 
 @functools.lru_cache(maxsize=32)
-def _filter_tables(n: int, size: int) -> tuple[np.ndarray, ...]:
-    """The 1-D Gaussian window (sigma 1.5, kornia's) on ``n`` samples with reflect padding, as two
-    linear maps: the filter and its transpose. Each is ``(lo, hi, idx, wt)``: rows ``[lo, hi)`` are the
-    plain window centred on the row; every row's taps are also in the gather table ``idx, wt`` [n, m]
-    (padded with zero weights), which the kernels use outside ``[lo, hi)``."""
+def _filter_tables(n: int, size: int) -> tuple[np.ndarray, tuple, tuple]:
+    """The 1-D Gaussian window (sigma 1.5, kornia's) on ``n`` samples with reflect padding, as
+    ``(w, filter, transpose)``: the window and two linear maps, each ``(lo, hi, idx, wt)``. Rows
+    ``[lo, hi)`` are the plain window centred on the row; every row's taps are also in the gather table
+    ``idx, wt`` [n, m] (padded with zero weights), which the kernels use outside ``[lo, hi)``."""
     r = size // 2
     w = kornia.filters.get_gaussian_kernel1d(size, 1.5).reshape(-1).numpy().astype(np.float32)
     rows = np.repeat(np.arange(n), size)
@@ -66,7 +66,7 @@ def _filter_tables(n: int, size: int) -> tuple[np.ndarray, ...]:
     # reflected taps land on rows 1..r and n - 1 - r..n - 2, so rows [r + 1, n - r - 1).
     f_lo, f_hi = r, max(r, n - r)
     t_lo, t_hi = min(r + 1, n), max(min(r + 1, n), n - r - 1)
-    return (w, f_lo, f_hi, *table(rows, cols), t_lo, t_hi, *table(cols, rows))
+    return w, (f_lo, f_hi, *table(rows, cols)), (t_lo, t_hi, *table(cols, rows))
 
 
 @njit(parallel=True, fastmath=True, cache=True)
@@ -193,15 +193,17 @@ def _input_grads(g_mom, p, t, gp, gt):  # pragma: no cover - numba
 def _filter(planes: np.ndarray, tables_y: tuple, tables_x: tuple, transpose: bool) -> np.ndarray:
     """The 2-D window over planes [K, H, W]: x then y, or for the transpose y then x."""
     k, height, width = planes.shape
-    w_y, w_x = tables_y[0], tables_x[0]
+    part = 2 if transpose else 1
+    w_y, map_y = tables_y[0], tables_y[part]
+    w_x, map_x = tables_x[0], tables_x[part]
     tmp = np.empty_like(planes)
     out = np.empty_like(planes)
     if transpose:
-        _filter_y(planes, w_y, *tables_y[5:9], tmp)
-        _filter_x(tmp.reshape(k * height, width), w_x, *tables_x[5:9], out.reshape(k * height, width))
+        _filter_y(planes, w_y, *map_y, tmp)
+        _filter_x(tmp.reshape(k * height, width), w_x, *map_x, out.reshape(k * height, width))
     else:
-        _filter_x(planes.reshape(k * height, width), w_x, *tables_x[1:5], tmp.reshape(k * height, width))
-        _filter_y(tmp, w_y, *tables_y[1:5], out)
+        _filter_x(planes.reshape(k * height, width), w_x, *map_x, tmp.reshape(k * height, width))
+        _filter_y(tmp, w_y, *map_y, out)
     return out
 
 
@@ -221,17 +223,15 @@ class SSIMMapNumba(torch.autograd.Function):
         out = np.empty((c, height, width), np.float32)
         _ssim(mom, out)
         ctx.save_for_backward(torch.from_numpy(p), torch.from_numpy(t), torch.from_numpy(mom))
-        ctx.size = size
+        ctx.tables = (tables_y, tables_x)
         return torch.from_numpy(out)[None]
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None]:  # type: ignore[override]
         p, t, mom = (x.numpy() for x in ctx.saved_tensors)
-        height, width, c = p.shape
-        tables_y, tables_x = _filter_tables(height, ctx.size), _filter_tables(width, ctx.size)
         g_mom = np.empty_like(mom)
         _moment_grads(mom, grad[0].float().contiguous().numpy(), g_mom)
-        g_raw = _filter(g_mom, tables_y, tables_x, transpose=True)
+        g_raw = _filter(g_mom, *ctx.tables, transpose=True)
         gp, gt = np.empty_like(p), np.empty_like(t)
         _input_grads(g_raw, p, t, gp, gt)
         want_p, want_t = ctx.needs_input_grad[0], ctx.needs_input_grad[1]

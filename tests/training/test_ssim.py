@@ -87,7 +87,7 @@ def test_numba_ssim_passes_a_gradient_only_where_asked() -> None:
 def test_filter_tables_are_the_reflect_padded_window_and_its_transpose(n, size) -> None:
     # The filter as a matrix, from the kernels applied to the unit vectors, against the window slid over
     # a reflect-padded signal; its transpose's kernels against the matrix's transpose.
-    w, f_lo, f_hi, f_idx, f_wt, t_lo, t_hi, t_idx, t_wt = ssim_cpu._filter_tables(n, size)
+    w, (f_lo, f_hi, f_idx, f_wt), (t_lo, t_hi, t_idx, t_wt) = ssim_cpu._filter_tables(n, size)
     r = size // 2
     eye = np.eye(n, dtype=np.float32)
     forward, transpose = np.empty_like(eye), np.empty_like(eye)
