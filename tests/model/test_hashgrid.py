@@ -202,6 +202,28 @@ def test_numba_kernels_match_the_reference(cfg, groups, dtype) -> None:
         torch.testing.assert_close(a, b, **tol, msg=what)
 
 
+@pytest.mark.parametrize("cfg,groups", [(TINY, 1), (LANG, 3)])
+def test_one_walk_table_gradient_without_positions(cfg, groups) -> None:
+    """Detached positions (the language grid's): the walk back leaves the positions' gradient out, and
+    the table's is the reference's and, to the bit, the one computed beside the positions'."""
+    grid = _grid(cfg, dtype=torch.float32)
+    torch.manual_seed(2)
+    u = torch.cat([torch.rand(300, 3), torch.full((40, 3), 0.31) + 1e-3 * torch.rand(40, 3)])
+    x = _world(grid, u)
+    out_shape = (len(x), cfg.out_dim) if groups == 1 else (groups, len(x), cfg.out_dim // groups)
+    upstream = torch.randn(out_shape)
+    grads = {}
+    for backend, wanted in (("numba", False), ("numba", True), ("torch", False)):
+        grid.backend = backend
+        grid.table.grad = None
+        xr = x.clone().requires_grad_(wanted)
+        (grid.encode(xr, groups) * upstream).sum().backward()
+        assert (xr.grad is not None) == wanted
+        grads[backend, wanted] = grid.table.grad.clone()
+    assert torch.equal(grads["numba", False], grads["numba", True])
+    torch.testing.assert_close(grads["numba", False], grads["torch", False], atol=1e-5, rtol=1e-5)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize(
     "cfg,groups",
