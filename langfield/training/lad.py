@@ -218,12 +218,15 @@ def lad_loss(target: LADTarget, depth: Tensor) -> Tensor:
     _check_depth(target, depth)
     if target.num_masks == 0:
         return _zero(depth)
-    d = depth.flatten()[target.pixel_index]
+    # index_select, not indexing: indexing's backward (index_put_ with accumulate) adds with atomics on
+    # two or more threads past 32,768 entries, so two runs of one seed would differ; index_add_ adds
+    # in order.
+    d = depth.flatten().index_select(0, target.pixel_index)
     lo = torch.segment_reduce(d, "min", lengths=target.mask_lengths)
     hi = torch.segment_reduce(d, "max", lengths=target.mask_lengths)
     floor = (RENDER_MIN_RANGE * (d.amax() - d.amin())).detach().clamp_min(RANGE_EPS)
     scale = torch.maximum(hi - lo, floor)
-    local = (d - lo[target.mask_index]) / scale[target.mask_index]
+    local = (d - lo.index_select(0, target.mask_index)) / scale.index_select(0, target.mask_index)
     return (local - target.prior_local.to(depth.dtype)).abs().mean()
 
 
@@ -244,7 +247,7 @@ def global_depth_loss(target: LADTarget, depth: Tensor) -> Tensor:
     _check_depth(target, depth)
     if target.valid_index.numel() == 0:
         return _zero(depth)
-    d = depth.flatten()[target.valid_index]
+    d = depth.flatten().index_select(0, target.valid_index)
     mean = d.mean()
     # sqrt of a clamped variance: finite gradient for a constant render.
     std = ((d - mean).square().mean()).clamp_min(RANGE_EPS**2).sqrt()

@@ -303,3 +303,32 @@ def test_bad_inputs_raise():
         lad_loss(target, torch.rand(H, W + 1))
     with pytest.raises(ValueError, match="depth"):
         depth_loss(target, torch.rand(H, W), torch.rand(1, H, W))
+
+
+def test_gradient_is_the_same_on_every_call_on_two_threads():
+    # Past 32,768 (mask, pixel) entries PyTorch's indexing adds its gradient with atomics on 2+ threads,
+    # in whatever order the threads meet; the losses must add in one order, or a seed would not repeat.
+    h, w = 160, 240
+    g = torch.Generator().manual_seed(11)
+    # One mask over the whole view: both threads add into its entry all the time.
+    segments = torch.full((3, h, w), -1)
+    segments[0] = 0
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    target = LADTarget.from_view(segments, 1.0 + (xx + 2 * yy).float() / w, "depth")
+    assert target.pixel_index.numel() > 32_768
+    depth = torch.rand(h, w, generator=g)
+
+    def gradient() -> Tensor:
+        d = depth.clone().requires_grad_()
+        depth_loss(target, d, d).backward()
+        return d.grad
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        first = gradient()
+        assert first.abs().sum() > 0
+        for _ in range(30):
+            assert torch.equal(gradient(), first)
+    finally:
+        torch.set_num_threads(before)
