@@ -7,12 +7,17 @@
 
 import os as _os
 
-# The fast backend's numba kernels and PyTorch's OpenMP threads share the machine's cores. OpenMP's
-# default is to spin after every parallel region, so torch's idle threads took the cores from numba's
-# workers and every torch op after a kernel waited for a time slice (a 20k-Gaussian step: 47 -> 39 ms,
-# a training iteration much more). Passive waiting parks them. It only takes effect if torch is not
-# imported yet; a user's own OMP_WAIT_POLICY wins.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# The fast backend's numba kernels and PyTorch's OpenMP threads share the machine's cores. GNU libgomp's
+# default spin after each parallel region (300,000 rounds) kept torch's idle threads on the cores that
+# numba's workers wanted; no spin at all (OMP_WAIT_POLICY=PASSIVE) puts them to sleep and wakes them
+# through the kernel for each of a step's hundreds of small ops, which cost more than the ops. A short
+# spin keeps them awake between one op and the next and asleep through a kernel (docs/decisions.md);
+# libgomp spins as GOMP_SPINCOUNT says under the ACTIVE policy only where it is the policy named (left
+# unnamed, the built-in scene trained no faster). It only takes effect if torch is not imported yet; a
+# user's own setting of either variable wins.
+if "OMP_WAIT_POLICY" not in _os.environ and "GOMP_SPINCOUNT" not in _os.environ:
+    _os.environ["OMP_WAIT_POLICY"] = "ACTIVE"
+    _os.environ["GOMP_SPINCOUNT"] = "3000"
 
 from langfield.camera import Camera
 from langfield.eval.evaluate import evaluate

@@ -42,3 +42,20 @@ def test_reuse_freed_memory_spares_the_page_faults_of_a_block_freed_and_allocate
     assert faults < 1000
     took_system, faults_system = _second_faults("system")
     assert took_system == "False" and faults_system > 10_000
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ({}, "ACTIVE 3000"),  # the short spin
+        ({"GOMP_SPINCOUNT": "50"}, "None 50"),  # the user's own spin
+        ({"OMP_WAIT_POLICY": "PASSIVE"}, "PASSIVE None"),  # the user's own policy
+    ],
+)
+def test_import_sets_a_short_openmp_spin_unless_the_user_chose(given: dict, expected: str) -> None:
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    probe = "import os, langfield; print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('GOMP_SPINCOUNT'))"
+    out = subprocess.run(
+        [sys.executable, "-c", probe], env={**env, **given}, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == expected
