@@ -4,12 +4,13 @@ in the viewer."""
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from langfield.eval.evaluate import evaluate, write_report
     from langfield.io.scene import load_scene
     from langfield.synthetic import make_room
     from langfield.training.config import TrainConfig
@@ -31,26 +32,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     field = train(scene, TrainConfig(iterations=args.iterations, seed=args.seed))
     field.meta["scene_args"] = {"resolution": 1.0, "views": None, "n_views": None}
     field.save(out / "field", overwrite=True)  # the demo's folder is its own: a rerun replaces it
-    pictures = out / "renders"
-    print(f"[3/6] rendering and scoring {len(scene.names('test'))} novel views to {pictures}")
-    report = evaluate(field, scene, save_dir=pictures)
-    md = write_report(report, out / "report.json", pictures)
-    print(f"[4/6] report: {out / 'report.json'} and {md}")
-    queries = out / "queries"
-    print(f"[5/6] text queries on the novel views ('couch' is a synonym the table knows) -> {queries}")
-    from langfield.cli.query import cmd_query
-
-    query_args = argparse.Namespace(
-        out=str(out / "field"),
-        phrases=list(DEMO_PHRASES),
-        views="test",
-        save=str(queries),
-        scene=str(scene_dir),
-        text_encoder=None,
-        exact=False,
-    )
-    cmd_query(query_args)
-    pictures_of_viewer = _look(field, scene, out)
+    shot = _start_viewer_shot(out)
+    try:
+        report, pictures, queries, pictures_of_viewer = _score_query_film(field, scene, scene_dir, out, shot)
+    finally:
+        if not isinstance(shot, str) and shot.poll() is None:
+            shot.kill()
     miou = report.get("mIoU")
     query_txt = f", novel-view mIoU {miou:.3f}, mAcc {report['mAcc']:.3f}" if miou is not None else ""
     print(
@@ -61,14 +48,39 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _look(field, scene, out: Path) -> str:
-    """Step 6: an orbit video with the heat map of 'sofa' (and one frame of it as a PNG), and a screenshot
-    of the viewer answering 'sofa' where a browser can be driven; what was written, in words."""
+def _score_query_film(field, scene, scene_dir: Path, out: Path, shot: subprocess.Popen | str):
+    """Steps 3 to 6 (the viewer's screenshot is taken meanwhile by ``shot``): the report, the folders of
+    the renders and the queries, and what step 6 wrote, in words."""
+    from langfield.cli.query import cmd_query
+    from langfield.eval.evaluate import evaluate, write_report
+
+    pictures = out / "renders"
+    print(f"[3/6] rendering and scoring {len(scene.names('test'))} novel views to {pictures}")
+    report = evaluate(field, scene, save_dir=pictures)
+    md = write_report(report, out / "report.json", pictures)
+    print(f"[4/6] report: {out / 'report.json'} and {md}")
+    queries = out / "queries"
+    print(f"[5/6] text queries on the novel views ('couch' is a synonym the table knows) -> {queries}")
+    query_args = argparse.Namespace(
+        out=str(out / "field"),
+        phrases=list(DEMO_PHRASES),
+        views="test",
+        save=str(queries),
+        scene=str(scene_dir),
+        text_encoder=None,
+        exact=False,
+    )
+    cmd_query(query_args)
+    written = _film(field, scene, out)
+    return report, pictures, queries, f"{written}{_end_viewer_shot(shot)}"
+
+
+def _film(field, scene, out: Path) -> str:
+    """Step 6: an orbit video with the heat map of 'sofa' and one frame of it as a PNG; what was
+    written, in words."""
     import cv2
 
-    from langfield.viewer.browser import browser_missing, screenshot_viewer, wait_for
     from langfield.viewer.paths import orbit
-    from langfield.viewer.server import Viewer
     from langfield.viewer.video import path_frames, read_video, write_video
 
     video = out / "orbit_sofa.mp4"
@@ -79,26 +91,67 @@ def _look(field, scene, out: Path) -> str:
     write_video(video, path_frames(field, path, query), fps=30.0)
     frame = read_video(video)[DEMO_FRAMES // 8]  # half-way out on the swing
     cv2.imwrite(str(out / "orbit_frame.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-    written = f"video {video}, one frame of it {out / 'orbit_frame.png'}"
+    return f"video {video}, one frame of it {out / 'orbit_frame.png'}"
+
+
+def _start_viewer_shot(out: Path) -> subprocess.Popen | str:
+    """Starts :func:`viewer_shot` on the saved field in a process of its own (or says why not).
+
+    The screenshot mostly waits on the browser's software-rendered frames; beside the evaluation and the
+    video it costs little, after them seconds. A process, not a thread: the viewer renders its heat map
+    with numba kernels, whose workqueue threads may not run two kernels at once in one process."""
+    from langfield.viewer.browser import browser_missing
+
     reason = browser_missing()
     if reason is not None:
-        return f"{written}; no screenshot of the viewer: {reason}"
-    viewer = Viewer(field, scene, port=0, save=out / "selections")
+        return reason
+    code = "import sys; from langfield.cli.demo import viewer_shot; print(viewer_shot(sys.argv[1]))"
+    return subprocess.Popen(
+        [sys.executable, "-c", code, str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+
+
+def _end_viewer_shot(shot: subprocess.Popen | str) -> str:
+    """What the screenshot process wrote, in words (a failure is said, never raised: the picture is for
+    the README, not a reason to fail the demo)."""
+    if isinstance(shot, str):
+        return f"; no screenshot of the viewer: {shot}"
+    try:
+        said, _ = shot.communicate(timeout=SHOT_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        shot.kill()
+        shot.communicate()
+        return f"; no screenshot of the viewer: none within {SHOT_TIMEOUT} s"
+    last = said.strip().splitlines()[-1] if said.strip() else f"it exited with {shot.returncode}"
+    return last if shot.returncode == 0 else f"; no screenshot of the viewer: {last}"
+
+
+def viewer_shot(out: str | Path) -> str:
+    """A screenshot of the viewer answering 'sofa' on the demo's field in ``out``, as ``out/viewer.jpg``;
+    what was written, in words (raises where it fails)."""
+    from langfield.field import LanguageField
+    from langfield.io.scene import load_scene
+    from langfield.viewer.browser import screenshot_viewer, wait_for
+    from langfield.viewer.server import Viewer
+
+    out = Path(out)
+    viewer = Viewer(
+        LanguageField.load(out / "field"), load_scene(out / "scene"), port=0, save=out / "selections"
+    )
     try:
         # Set on the server, as if typed: the page opens with the answer shown (see screenshot_viewer).
         viewer.phrase_box.value = "sofa"
         if not wait_for(lambda: viewer.answer.phrase == "sofa"):
             raise RuntimeError(f"the viewer did not answer 'sofa': {viewer.answer.text}")
         shot = screenshot_viewer(viewer.url, out / "viewer.jpg")
-    except Exception as err:  # a picture for the README: never a reason to fail the demo
-        return f"{written}; no screenshot of the viewer: {err}"
     finally:
         viewer.close()
-    return f"{written}, the viewer answering 'sofa' {shot}"
+    return f", the viewer answering 'sofa' {shot}"
 
 
 DEMO_PHRASES = ("sofa", "couch", "lamp", "mug")
 DEMO_FRAMES = 120
+SHOT_TIMEOUT = 180  # seconds the screenshot may take after the video (it takes ~10 on two cores)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
