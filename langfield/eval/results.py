@@ -187,7 +187,8 @@ def _description(path: Path) -> list[str]:
 def _machine(m: dict | None) -> str:
     if not m:
         return "unknown"
-    return f"{m['cpus']} CPUs ({m['cpu']}), {m['threads']} threads per run"
+    cpu = ", ".join(part for part in (m["cpu"], m.get("generation"), m.get("simd")) if part)
+    return f"{m['cpus']} CPUs ({cpu}), {m['threads']} threads per run"
 
 
 def _commit(commit: str) -> str:

@@ -183,13 +183,32 @@ def train_run(run: Run) -> dict:
 
 
 def machine() -> dict[str, Any]:
-    """What ran a training: the machine's CPUs, their model, and the threads PyTorch was given."""
+    """What ran a training: the machine's CPUs, their model, the vendor's family and model numbers (one
+    brand name covers generations years apart), their vector width, OpenMP's wait settings and the
+    threads PyTorch was given."""
     import torch
+
+    from langfield.eval.bench import fma_lanes
 
     cpuinfo = Path("/proc/cpuinfo")
     text = cpuinfo.read_text() if cpuinfo.is_file() else ""
-    model = next((ln.split(":", 1)[1].strip() for ln in text.splitlines() if ln.startswith("model name")), "")
-    return {"cpus": os.cpu_count(), "cpu": model or platform.machine(), "threads": torch.get_num_threads()}
+    first = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        first.setdefault(key.strip(), value.strip())
+    generation = (
+        f"family {first['cpu family']} model {first['model']}"
+        if "cpu family" in first and "model" in first
+        else ""
+    )
+    return {
+        "cpus": os.cpu_count(),
+        "cpu": first.get("model name") or platform.machine(),
+        "generation": generation,
+        "simd": fma_lanes(text)[1] if text else "",
+        "openmp": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")},
+        "threads": torch.get_num_threads(),
+    }
 
 
 def source_commit() -> str:
