@@ -3,12 +3,10 @@ commands run in-process, a tiny SAM."""
 
 from __future__ import annotations
 
-import os
+# langfield first: it sets OpenMP's wait before torch loads (langfield/__init__.py).
+import langfield  # noqa: F401
 
-# langfield/__init__.py's OpenMP setting, before torch loads (the imports below load torch first).
-if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
-    os.environ.update(OMP_WAIT_POLICY="ACTIVE", GOMP_SPINCOUNT="3000")
-
+# isort: split
 import pytest
 import torch
 

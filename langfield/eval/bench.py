@@ -115,6 +115,14 @@ def cpu_peak_gflops(cpuinfo: str | None = None) -> dict[str, Any]:
     return {"cores": cores, "ghz": ghz, "fp32_lanes": lanes, "lanes_why": why, "fma_units": 2, "gflops": peak}
 
 
+def cpuinfo_field(cpuinfo: str, name: str) -> str:
+    """The first value of ``name`` in /proc/cpuinfo's text (its first CPU's), "" where there is none."""
+    return next(
+        (ln.split(":", 1)[1].strip() for ln in cpuinfo.splitlines() if ln.split(":")[0].strip() == name),
+        "",
+    )
+
+
 def fma_lanes(cpuinfo: str) -> tuple[int, str]:
     """fp32 lanes of one FMA unit from /proc/cpuinfo's text, and why, in a few words.
 
@@ -127,10 +135,7 @@ def fma_lanes(cpuinfo: str) -> tuple[int, str]:
     """
 
     def field(name: str) -> str:
-        return next(
-            (ln.split(":", 1)[1].strip() for ln in cpuinfo.splitlines() if ln.split(":")[0].strip() == name),
-            "",
-        )
+        return cpuinfo_field(cpuinfo, name)
 
     flags = set(field("flags").split())
     amd = field("vendor_id") == "AuthenticAMD"

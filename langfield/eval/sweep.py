@@ -188,22 +188,15 @@ def machine() -> dict[str, Any]:
     threads PyTorch was given."""
     import torch
 
-    from langfield.eval.bench import fma_lanes
+    from langfield.eval.bench import cpuinfo_field, fma_lanes
 
     cpuinfo = Path("/proc/cpuinfo")
     text = cpuinfo.read_text() if cpuinfo.is_file() else ""
-    first = {}
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        first.setdefault(key.strip(), value.strip())
-    generation = (
-        f"family {first['cpu family']} model {first['model']}"
-        if "cpu family" in first and "model" in first
-        else ""
-    )
+    family, model = cpuinfo_field(text, "cpu family"), cpuinfo_field(text, "model")
+    generation = f"family {family} model {model}" if family and model else ""
     return {
         "cpus": os.cpu_count(),
-        "cpu": first.get("model name") or platform.machine(),
+        "cpu": cpuinfo_field(text, "model name") or platform.machine(),
         "generation": generation,
         "simd": fma_lanes(text)[1] if text else "",
         "openmp": {k: os.environ.get(k) for k in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")},
