@@ -32,6 +32,38 @@ def _min_q(x0, x1, y0, y1, a, b, c):
     return best
 
 
+@njit(inline="always")
+def _order_by_depth(cand, depths):
+    """``cand`` ordered by ``depths[cand]``, ties kept in their order: what a stable argsort gives, as
+    a least-significant-digit radix sort of the float32 depths' bits (4 passes of 8 bits; 0.3 ms
+    against 2.2 ms of mergesort for fern's 27k Gaussians). The bits are mapped so that their unsigned
+    order is the floats' order: a positive float's sign bit set, a negative float's every bit flipped."""
+    n = cand.shape[0]
+    keys = np.empty(n, np.uint32)
+    for j in range(n):
+        bits = np.uint32(np.float32(depths[cand[j]]).view(np.uint32))
+        if bits == np.uint32(0x80000000):  # -0.0 ties with 0.0, as in a comparison sort
+            bits = np.uint32(0)
+        keys[j] = ~bits if bits >> np.uint32(31) else bits | np.uint32(0x80000000)
+    order = cand.copy()
+    spare = np.empty(n, np.int64)
+    spare_keys = np.empty(n, np.uint32)
+    for shift in range(0, 32, 8):
+        counts = np.zeros(257, np.int64)
+        for j in range(n):
+            counts[((keys[j] >> np.uint32(shift)) & np.uint32(255)) + 1] += 1
+        for b in range(256):
+            counts[b + 1] += counts[b]
+        for j in range(n):
+            b = (keys[j] >> np.uint32(shift)) & np.uint32(255)
+            spare[counts[b]] = order[j]
+            spare_keys[counts[b]] = keys[j]
+            counts[b] += 1
+        order, spare = spare, order
+        keys, spare_keys = spare_keys, keys
+    return order
+
+
 @njit(cache=True)
 def _bin(means2d, radii, conics, opacities, depths, width, height, tile, alpha_min, q_margin):
     n = means2d.shape[0]
@@ -72,7 +104,7 @@ def _bin(means2d, radii, conics, opacities, depths, width, height, tile, alpha_m
         n_cand += 1
         n_box += (x1 - x0) * (y1 - y0)
     cand = cand[:n_cand]
-    order = cand[np.argsort(depths[cand], kind="mergesort")]
+    order = _order_by_depth(cand, depths)
     # Each box tile's verdict (binning.bin_gaussians), in the order the second pass walks them.
     tile_of = np.empty(n_box, np.int64)
     counts = np.zeros(n_tiles + 1, np.int64)

@@ -10,7 +10,7 @@ from conftest import random_gaussians
 
 from langfield.camera import Camera
 from langfield.raster.binning import TILE_SIZE, bin_gaussians
-from langfield.raster.binning_cpu import bin_gaussians_cpu
+from langfield.raster.binning_cpu import _order_by_depth, bin_gaussians_cpu
 from langfield.raster.projection import Projected, project_gaussians
 from langfield.raster.projection_cpu import project_gaussians_cpu
 
@@ -74,6 +74,33 @@ def test_binning_matches_reference(cam, seed):
     ref = bin_gaussians(proj.means2d, proj.radii, proj.conics, opacities, proj.depths, 40, 30)
     fast = bin_gaussians_cpu(proj.means2d, proj.radii, proj.conics, opacities, proj.depths, 40, 30)
     assert torch.equal(ref[0], fast[0]) and torch.equal(ref[1], fast[1])
+
+
+def test_binning_keeps_the_index_order_of_equal_depths(cam):
+    """Duplicated Gaussians (equal depths in every copy): each tile lists the copies by index, as the
+    reference's stable sort does."""
+    means, quats, scales, opacities, _ = random_gaussians(100, 1, seed=3, log_scale=-2.0)
+    means, quats, scales, opacities = (torch.cat([t, t, t]) for t in (means, quats, scales, opacities))
+    proj = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 30)
+    ref = bin_gaussians(proj.means2d, proj.radii, proj.conics, opacities, proj.depths, 40, 30)
+    fast = bin_gaussians_cpu(proj.means2d, proj.radii, proj.conics, opacities, proj.depths, 40, 30)
+    assert torch.equal(ref[0], fast[0]) and torch.equal(ref[1], fast[1])
+
+
+def test_depth_order_is_a_stable_sort_of_the_floats():
+    """The radix sort of the depths' bits orders as a stable comparison sort does: ties (copies, 0.0
+    and -0.0) in the candidates' order, negative depths and infinities in their place."""
+    rng = np.random.default_rng(0)
+    depths = rng.normal(size=3000).astype(np.float32)
+    depths[::7] = depths[3]
+    depths[::11] = 0.0
+    depths[1::13] = -0.0
+    depths[5], depths[6] = np.inf, -np.inf
+    depths[100:200] = rng.uniform(1.0, 1.0001, 100)  # differing in the last bits only
+    cand = np.sort(rng.choice(3000, 2500, replace=False)).astype(np.int64)
+    expected = cand[np.argsort(depths[cand], kind="stable")]
+    assert np.array_equal(_order_by_depth(cand, depths), expected)
+    assert _order_by_depth(cand[:0], depths).shape == (0,)
 
 
 def _needles(n: int, seed: int) -> list[torch.Tensor]:
