@@ -68,12 +68,18 @@ def backend_step_ms(
 
 
 def _median_step(
-    base: list[torch.Tensor], weights: torch.Tensor, camera: Camera, backend: str, repeats: int
+    base: list[torch.Tensor],
+    weights: torch.Tensor,
+    camera: Camera,
+    backend: str,
+    repeats: int,
+    times: list[float] | None = None,
 ) -> tuple[float, torch.Tensor]:
     """Median seconds of ``repeats`` forward + backward renders of the Gaussians ``base`` (a first,
     untimed one compiles and warms the caches), and the rendered image. ``weights`` is the image's
-    upstream gradient, handed to the backward as it is: the time is the rasterizer's, not a loss's."""
-    times = []
+    upstream gradient, handed to the backward as it is: the time is the rasterizer's, not a loss's.
+    Each step's seconds are appended to ``times`` where given."""
+    times = [] if times is None else times
     for i in range(repeats + 1):
         leaves = [t.clone().requires_grad_(True) for t in base]
         t0 = time.perf_counter()
@@ -209,7 +215,8 @@ def raster_throughput(
     feats = torch.rand(means.shape[0], channels, generator=g)
     weights = torch.randn(camera.height, camera.width, channels, generator=g)
     base = [t.detach() for t in (means, quats, scales, opacities.reshape(-1), feats)]
-    seconds, _ = _median_step(base, weights, camera, backend, repeats)
+    times: list[float] = []
+    seconds, _ = _median_step(base, weights, camera, backend, repeats, times)
     peak = cpu_peak_gflops()
     rate = pairs / seconds if seconds > 0 else None
     achieved = rate * pair_flops(channels) / 1e9 if rate else None
@@ -221,6 +228,8 @@ def raster_throughput(
         "channels": channels,
         "pairs": pairs,
         "step_ms": 1000 * seconds,
+        "step_ms_range": [1000 * min(times), 1000 * max(times)],
+        "steps": len(times),
         "pairs_per_second": rate,
         "flops_per_pair": pair_flops(channels),
         "achieved_gflops": achieved,
@@ -520,9 +529,18 @@ def format_throughput(r: dict) -> str:
     return (
         f"  rasterizer ({r['backend']}, forward+backward) on the {r['num_gaussians']} trained Gaussians at "
         f"{r['width']}x{r['height']}: {r['pairs'] / 1e6:.1f} M Gaussian-pixel pairs in {r['step_ms']:.0f} ms "
+        f"{_step_spread(r)}"
         f"= {r['pairs_per_second'] / 1e6:.1f} M pairs/s x {r['flops_per_pair']} FLOP = "
         f"{r['achieved_gflops']:.1f} GFLOP/s against {peak_txt}{frac}"
     )
+
+
+def _step_spread(r: dict) -> str:
+    """The steps' count and spread, where the record has them (older bench.json files do not)."""
+    if not r.get("step_ms_range"):
+        return ""
+    lo, hi = r["step_ms_range"]
+    return f"(median of {r['steps']} steps, {lo:.0f}-{hi:.0f} ms) "
 
 
 def run_bench(

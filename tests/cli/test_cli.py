@@ -297,6 +297,7 @@ def test_bench_writes_json_and_plot(scene_dir, tmp_path, capsys, monkeypatch) ->
     assert "faster than torch" in printed and "within 0.3 dB of the last point" in printed
     assert "seed 1, defaults but half_resolution_until=0.5" in printed
     assert "Gaussian-pixel pairs" in printed and "iterations went: " in printed
+    assert "(median of 15 steps, " in printed
     assert "trained the forced length, 20 iterations" in printed
 
 
@@ -350,7 +351,8 @@ def test_raster_throughput_counts_the_pairs_the_reference_binning_lists() -> Non
     cam = Camera.look_at((0, 0, 3), (0, 0, 0), (0, 1, 0), width=40, height=28)
     sp = G.init_gaussians(np.array([[-1.0, -1, -1], [1, 1, 1]]), 200, seed=0)
     means, quats, scales, opac = sp["means"], sp["quats"], G.scales(sp), G.opacities(sp)
-    r = raster_throughput(means, quats, scales, opac, cam, channels=5, repeats=1)
+    r = raster_throughput(means, quats, scales, opac, cam, channels=5, repeats=3)
+    assert r["steps"] == 3 and r["step_ms_range"][0] <= r["step_ms"] <= r["step_ms_range"][1]
     with torch.no_grad():
         pr = project_gaussians(means, quats, scales, cam.world_to_camera(), cam.intrinsics(), 40, 28)
         offsets, _ = bin_gaussians(pr.means2d, pr.radii, pr.conics, opac.reshape(-1), pr.depths, 40, 28)
