@@ -12,6 +12,7 @@ from langfield.kernels import notice_once, uncompiled_kernels
 from langfield.model.colour import ColorField
 from langfield.model.hashgrid import HashGridConfig
 from langfield.raster import rasterize, rasterize_slots
+from langfield.raster.composite_cpu import FIXED_CHANNELS
 from langfield.training.ssim import ssim_map
 
 __all__ = ["main", "warm_up"]
@@ -38,6 +39,12 @@ def warm_up() -> float:
     camera = Camera.look_at(eye=(0, -2, 0.5), target=(0, 0, 0), width=32, height=24)
     out = rasterize(means, quats, scales, opacities, features, camera, backend="numba")
     (out.image.sum() + out.alpha.sum()).backward()
+    for n_ch, n_geo in FIXED_CHANNELS:  # the compositing kernels compiled for these counts too
+        channels = torch.rand(n, n_ch, generator=generator).requires_grad_(True)
+        fixed = rasterize(
+            means, quats, scales, opacities, channels, camera, backend="numba", geometry_channels=n_geo
+        )
+        fixed.image.sum().backward()
     slots = torch.randint(0, 4, (n, 1), generator=generator)  # a vote's weights per codebook entry
     rasterize_slots(means.detach(), quats.detach(), scales.detach(), opacities.detach(), slots, 4, camera)
     ssim_map(out.image.detach().requires_grad_(True), out.image.detach(), backend="numba").sum().backward()
