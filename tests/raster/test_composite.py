@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 from conftest import random_gaussians
 
 from langfield.camera import Camera
-from langfield.raster import rasterize, rasterize_with_second_pass
+from langfield.raster import composite_cpu, rasterize, rasterize_with_second_pass
+from langfield.raster.composite_cpu import FIXED_CHANNELS
 from langfield.raster.projection import project_gaussians, quat_to_rotmat
 
 NAMES = ("means", "quats", "scales", "opacities", "features")
@@ -227,6 +230,45 @@ def test_backends_agree_with_geometry_detached_for_later_channels(small_camera):
         results[backend] = [p.grad for p in leaves]
     for name, a, b in zip(NAMES, results["torch"], results["numba"], strict=True):
         assert ((a - b).norm() / a.norm()).item() <= 1e-3, name
+
+
+@pytest.mark.parametrize("channels, geometry", FIXED_CHANNELS)
+def test_kernels_compiled_for_a_channel_count_match_the_reference_and_the_general_kernel(
+    small_camera, channels, geometry
+):
+    """The compositing kernels built for a known channel count (training's and the bench's) against
+    the PyTorch reference, and to the bit against the kernels that read the count at run time."""
+    params = random_gaussians(200, channels, seed=channels + geometry)
+    results = {}
+    for backend in ("torch", "numba", "general"):
+        leaves = [p.detach().clone().requires_grad_(True) for p in params]
+        with _general_kernels(backend == "general"):
+            out = rasterize(
+                *leaves, small_camera, backend=backend.replace("general", "numba"), geometry_channels=geometry
+            )
+        g = torch.Generator().manual_seed(3)
+        (out.image * torch.randn(out.image.shape, generator=g)).sum().backward()
+        results[backend] = (out.image.detach(), [p.grad for p in leaves])
+    assert (results["torch"][0] - results["numba"][0]).abs().max() <= 1e-4
+    for name, a, b in zip(NAMES, results["torch"][1], results["numba"][1], strict=True):
+        assert ((a - b).norm() / a.norm()).item() <= 1e-3, name
+    assert torch.equal(results["numba"][0], results["general"][0])
+    for name, a, b in zip(NAMES, results["numba"][1], results["general"][1], strict=True):
+        assert torch.equal(a, b), name
+
+
+@contextlib.contextmanager
+def _general_kernels(on: bool):
+    """The run-time-count kernels for every call while on (composite_cpu._fixed answering none)."""
+    if not on:
+        yield
+        return
+    original = composite_cpu._fixed
+    composite_cpu._fixed = lambda n_ch, n_geo: ((), ())
+    try:
+        yield
+    finally:
+        composite_cpu._fixed = original
 
 
 def test_detached_channels_pass_no_gradient_to_geometry(small_camera):
