@@ -60,26 +60,21 @@ def backend_step_ms(
     results: dict[str, dict[str, float]] = {}
     images: dict[str, torch.Tensor] = {}
     for backend in BACKENDS:
-        seconds, images[backend] = _median_step(base, weights, camera, backend, repeats.get(backend, 3))
+        times, images[backend] = _step_times(base, weights, camera, backend, repeats.get(backend, 3))
+        seconds = statistics.median(times)
         results[backend] = {"step_ms": 1000 * seconds}
     for backend in BACKENDS:
         results[backend]["image_max_abs_err"] = float((images[backend] - images["torch"]).abs().max())
     return results
 
 
-def _median_step(
-    base: list[torch.Tensor],
-    weights: torch.Tensor,
-    camera: Camera,
-    backend: str,
-    repeats: int,
-    times: list[float] | None = None,
-) -> tuple[float, torch.Tensor]:
-    """Median seconds of ``repeats`` forward + backward renders of the Gaussians ``base`` (a first,
+def _step_times(
+    base: list[torch.Tensor], weights: torch.Tensor, camera: Camera, backend: str, repeats: int
+) -> tuple[list[float], torch.Tensor]:
+    """Seconds of each of ``repeats`` forward + backward renders of the Gaussians ``base`` (a first,
     untimed one compiles and warms the caches), and the rendered image. ``weights`` is the image's
-    upstream gradient, handed to the backward as it is: the time is the rasterizer's, not a loss's.
-    Each step's seconds are appended to ``times`` where given."""
-    times = [] if times is None else times
+    upstream gradient, handed to the backward as it is: the time is the rasterizer's, not a loss's."""
+    times = []
     for i in range(repeats + 1):
         leaves = [t.clone().requires_grad_(True) for t in base]
         t0 = time.perf_counter()
@@ -87,7 +82,7 @@ def _median_step(
         torch.autograd.backward(out.image, weights)
         if i > 0:
             times.append(time.perf_counter() - t0)
-    return statistics.median(times), out.image.detach()
+    return times, out.image.detach()
 
 
 # Arithmetic of one Gaussian-pixel pair with C channels, counted as the kernels do it: the offset
@@ -215,8 +210,8 @@ def raster_throughput(
     feats = torch.rand(means.shape[0], channels, generator=g)
     weights = torch.randn(camera.height, camera.width, channels, generator=g)
     base = [t.detach() for t in (means, quats, scales, opacities.reshape(-1), feats)]
-    times: list[float] = []
-    seconds, _ = _median_step(base, weights, camera, backend, repeats, times)
+    times, _ = _step_times(base, weights, camera, backend, repeats)
+    seconds = statistics.median(times)
     peak = cpu_peak_gflops()
     rate = pairs / seconds if seconds > 0 else None
     achieved = rate * pair_flops(channels) / 1e9 if rate else None

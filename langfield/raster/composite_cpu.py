@@ -764,8 +764,8 @@ def _q_max(opacities: np.ndarray) -> np.ndarray:
 # Channel counts the compositing kernels are also compiled for as constants, beside the kernel for any
 # count: training renders 4 channels (colour and depth, all 4 moving the geometry) and 13 with the
 # language latents (4 moving the geometry), the bench 13 (all 13). With the count known, LLVM unrolls
-# the loops over the channels whole: fern's view, 13 channels, forward 22.6 -> 20.3 ms, backward 38.6
-# -> 36.6 ms. A count travels as the length of a tuple of zeros, which is part of the tuple's type (so
+# the loops over the channels whole: fern's view, 13 channels, forward 23.0 -> 19.9 ms, backward 38.9
+# -> 36.7 ms. A count travels as the length of a tuple of zeros, which is part of the tuple's type (so
 # each length has its machine code) and is read at dispatch as fast as any argument; an integer marked
 # `numba.literally` did the same but went through the compiler's typing on every call (about 1 s).
 FIXED_CHANNELS = ((4, 4), (13, 4), (13, 13))
