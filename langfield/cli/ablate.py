@@ -40,6 +40,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "no-random-background, no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, "
         "full-resolution, virtual-every-step, half-size-virtual, opacity-noise, orbit, orbit-wide, "
         "both-motions, direction-frequencies, no-direction, depth-baseline, virtual-occlusion, crossview, "
+        "co-training, "
         "stereo (default: full, no-lop, no-lad, no-depth, per-gaussian, paper-language, random-init, "
         "no-dropout, no-virtual, no-random-background, no-empty-space, no-opacity-decay; those a scene "
         "cannot use skipped)",

@@ -96,6 +96,7 @@ CASES: dict[str, dict[str, Any]] = {
     "carve": {"carve_free_space": True},
     "visibility": {"lambda_visibility": 0.5},
     "crossview": {"lambda_crossview": 0.2},
+    "co-training": {"co_train": True},
     "stereo": {"lambda_stereo": 1.0},
     "full-resolution": {"half_resolution_until": 0.0},
     "virtual-every-step": {"virtual_every": 1},

@@ -314,10 +314,7 @@ class TrainConfig:
     virtual_start: int = in_sparse_view(0, "first iteration of the virtual-view term", check=Whole(0))
     # It renders a second view; every second iteration fits fern better than every one.
     virtual_every: int = in_sparse_view(
-        2,
-        "the virtual-view term on every n-th iteration (it renders a second view)",
-        check=Whole(1),
-        flag="--virtual-every",
+        2, "the virtual-view term every n-th iteration", check=Whole(1), flag="--virtual-every"
     )
     virtual_resolution: float = in_sparse_view(
         1.0,
@@ -378,14 +375,24 @@ class TrainConfig:
     lambda_refiner: float = in_sparse_view(0.5, "weight of the refiner's pseudo views", check=Number(0.0))
     refiner_every: int = in_sparse_view(10, "a pseudo view every n-th iteration", check=Whole(1))
     refiner_start: int = in_sparse_view(500, "first iteration with pseudo views", check=Whole(0))
+    co_train: bool = in_sparse_view(
+        False, "co-train a second field; each checks the other (CoR-GS)", check=FLAG, flag="--co-train"
+    )
+    lambda_coreg: float = in_sparse_view(
+        1.0, "weight of the co-trained fields' agreement", check=Number(0.0), flag="--lambda-coreg"
+    )
+    coprune_every: int = in_sparse_view(
+        500, "iterations between co-pruning rounds (0: none)", check=Whole(0), flag="--coprune-every"
+    )
+    coprune_distance: float = in_sparse_view(
+        0.01, "co-pruning's reach, a fraction of the start's median depth", check=Number(0.0, open_low=True)
+    )
 
     # -- learning rates and schedule
     grid_lr: float = in_schedule(5e-3, "hash grids' learning rate", check=Number(0.0, open_low=True))
     mlp_lr: float = in_schedule(5e-4, "MLPs' learning rate", check=Number(0.0, open_low=True))
     per_gaussian_language_lr: float = in_schedule(
-        2.5e-3,
-        "per-Gaussian latents' learning rate (LangSplat's language_feature_lr)",
-        check=Number(0.0, open_low=True),
+        2.5e-3, "per-Gaussian latents' learning rate (LangSplat's)", check=Number(0.0, open_low=True)
     )
     # DashGaussian's coarse to fine in one step: it buys time, not quality.
     half_resolution_until: float = in_schedule(
@@ -397,10 +404,7 @@ class TrainConfig:
     # The language pass is detached from the geometry, so colour and geometry train the same either
     # way; skipping the half-size start, where the Gaussians move most, saves time at no loss.
     language_start: float = in_schedule(
-        0.33,
-        "fraction of the run before the language term starts",
-        check=Number(0.0, 1.0),
-        flag="--language-start",
+        0.33, "fraction of the run before the language term", check=Number(0.0, 1.0), flag="--language-start"
     )
 
     # -- edits of the Gaussian set (langfield.training.strategy)
@@ -418,7 +422,7 @@ class TrainConfig:
     )
     grad_threshold: float = in_strategy(
         0.0013,
-        "mean screen-space gradient above which a Gaussian is cloned or split",
+        "mean screen-space gradient that clones or splits a Gaussian",
         check=Number(0.0, open_low=True),
     )
     prune_opacity: float = in_strategy(
@@ -433,10 +437,7 @@ class TrainConfig:
     )
     opacity_decay_start: int = in_strategy(500, "first iteration of the opacity decay", check=Whole(0))
     carve_free_space: bool = in_strategy(
-        False,
-        "remove Gaussians in front of the surfaces the views' stereo resolves",
-        check=FLAG,
-        flag="--carve-free-space",
+        False, "remove Gaussians in front of the stereo's surfaces", check=FLAG, flag="--carve-free-space"
     )
     carve_tolerance: float = in_strategy(0.03, "carving's relative depth tolerance", check=Number(0.0, 1.0))
 

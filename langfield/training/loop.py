@@ -3,7 +3,8 @@
 One iteration: the strategy's pre-render edit (carving), the training view rendered
 (:func:`render_step`: the position learning rate's decay, dropout, a random background), the named loss
 terms (:func:`~langfield.training.losses.loss_terms`) summed and back-propagated, densification, the
-optimizers' step, opacity decay and LOP (:class:`~langfield.training.strategy.TrainingStrategy`).
+optimizers' step, opacity decay and LOP (:class:`~langfield.training.strategy.TrainingStrategy`);
+with ``co_train`` a second field takes each step beside the first (:mod:`langfield.training.cotrain`).
 The run ends at its length, or earlier where its length was not forced and the fitting terms have
 levelled off (:mod:`langfield.training.stopping`); field.json's ``stopped`` says which. Each
 term's mean over every ``LOSS_LOG_EVERY`` iterations goes into field.json (``loss_terms``), and the
@@ -28,6 +29,7 @@ from langfield.io.scene import Scene
 from langfield.kernels import reuse_freed_memory
 from langfield.training.aggregate import register_entries
 from langfield.training.config import TrainConfig
+from langfield.training.cotrain import co_prune, coprune_due, coreg_due, coreg_terms
 from langfield.training.losses import StepRender, loss_terms
 from langfield.training.regularisers import drop_compensation, opacity_noise
 from langfield.training.setup import Run, prepare
@@ -70,7 +72,6 @@ def train(
     if clock is not None:
         run.clock = clock
     cfg, field, names = run.cfg, run.field, list(run.views)
-    stage = run.clock.stage
     order: list[str] = []
     log = LossLog()
     train_seconds = 0.0
@@ -79,24 +80,10 @@ def train(
     bar = tqdm(total=cfg.iterations, disable=not progress, desc="train", dynamic_ncols=True, leave=False)
     for step in range(cfg.iterations):
         t0 = time.perf_counter()
-        with stage("strategy"):
-            run.strategy.before_render(step)
         if not order:
             order = [names[i] for i in run.rng.permutation(len(names))]
-        name = order.pop()
-        render = render_step(run, step, name)
-        loss, terms = loss_terms(run, step, name, render)
-        with stage("backward"):
-            loss.backward()
-        with stage("strategy"):
-            run.strategy.after_backward(step, render.out, render.view.camera)
-        with stage("optimizer"):
-            for opt in run.optimizers.values():
-                opt.step()
-                opt.zero_grad(set_to_none=True)
-        with stage("strategy"):
-            message = run.strategy.after_optimizer_step(step)
-        if message:  # a LOP round ran
+        loss, terms, message = iterate(run, step, order.pop())
+        if message:  # a LOP or co-pruning round ran: the set was edited
             bar.write(message)
             if stop is not None:
                 stop.restart(step + 1)
@@ -122,6 +109,43 @@ def train(
     if callback is not None:
         callback(steps_run, train_seconds, field)
     return field
+
+
+def iterate(run: Run, step: int, name: str) -> tuple[torch.Tensor, dict[str, torch.Tensor], str | None]:
+    """One iteration on training view ``name`` (of both fields when co-training): render, loss, backward,
+    the strategy's edits and the optimizers' step. Returns the field's loss, its terms and a line on
+    the pruning round that ran (LOP, co-pruning), if any."""
+    runs = [run] if run.partner is None else [run, run.partner]
+    stage = run.clock.stage
+    with stage("strategy"):
+        for r in runs:
+            r.strategy.before_render(step)
+    render = render_step(run, step, name)
+    loss, terms = loss_terms(run, step, name, render)
+    renders, joint = [render], loss
+    if run.partner is not None:
+        loss, terms, joint, partner_render = partner_step(run, step, name, render, loss, terms)
+        renders.append(partner_render)
+    with stage("backward"):
+        joint.backward()
+    with stage("strategy"):
+        for r, rendered in zip(runs, renders, strict=True):
+            r.strategy.after_backward(step, rendered.out, rendered.view.camera)
+    with stage("optimizer"):
+        for r in runs:
+            for opt in r.optimizers.values():
+                opt.step()
+                opt.zero_grad(set_to_none=True)
+    with stage("strategy"):
+        message = run.strategy.after_optimizer_step(step)
+        if run.partner is not None:
+            run.partner.strategy.after_optimizer_step(step)
+            if coprune_due(run, step + 1):
+                run.co_pruned.append(co_prune(run, step + 1))
+                line = "co-pruning at iteration {iteration}: removed {removed} (partner: {partner_removed})"
+                line = line.format(**run.co_pruned[-1])
+                message = line if message is None else f"{message}\n{line}"
+    return loss, terms, message
 
 
 def plateau_stop(run: Run) -> PlateauStop | None:
@@ -153,6 +177,29 @@ def _finish(run: Run, train_seconds: float, log: LossLog, steps: int, stop: Plat
         num_gaussians=field.num_gaussians,
         loss_terms=log.entries(),
     )
+    if run.partner is not None:
+        field.meta["co_training"] = {
+            "partner_gaussians": run.partner.field.num_gaussians,
+            "coprune_distance": run.coprune_distance,
+            "co_pruned": run.co_pruned,
+        }
+
+
+def partner_step(
+    run: Run, step: int, name: str, render: StepRender, loss: torch.Tensor, terms: dict[str, torch.Tensor]
+) -> tuple[torch.Tensor, dict[str, torch.Tensor], torch.Tensor, StepRender]:
+    """Co-training's share of a step (:mod:`langfield.training.cotrain`): the partner field renders the
+    same training view with its own loss, and, where due, both fields render a virtual camera and each
+    is compared with the other. Returns the main field's loss and terms (``coreg`` among them where it
+    ran), the sum of both fields' losses to back-propagate, and the partner's render."""
+    partner = run.partner
+    other = render_step(partner, step, name)
+    other_loss, _ = loss_terms(partner, step, name, other)
+    if coreg_due(run, step):
+        mine, theirs = coreg_terms(run, render.grid, other.grid)
+        terms = {**terms, "coreg": mine}
+        loss, other_loss = loss + mine, other_loss + theirs
+    return loss, terms, loss + other_loss, other
 
 
 def render_step(run: Run, step: int, name: str) -> StepRender:

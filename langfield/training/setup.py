@@ -263,6 +263,10 @@ class Run:
     rendered: dict[str, tuple[Camera, Tensor, Tensor]] = dataclasses.field(default_factory=dict)
     virtual_spacing: float = 0.0  # the virtual camera's shift from the cameras' spacing (scene units)
     clock: StageClock = dataclasses.field(default_factory=lambda: StageClock(enabled=False))
+    # Co-training (cfg.co_train): the second field's run, and co-pruning's distance in scene units.
+    partner: Run | None = None
+    coprune_distance: float = 0.0
+    co_pruned: list[dict[str, Any]] = dataclasses.field(default_factory=list)  # one record per round
 
 
 def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:
@@ -309,7 +313,7 @@ def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:
     }
     # The first half_resolution_until of the run renders every view at half its width and height.
     half_steps = round(cfg.half_resolution_until * cfg.iterations)
-    return Run(
+    run = Run(
         cfg=cfg,
         scene=scene,
         field=field,
@@ -327,3 +331,38 @@ def prepare(scene: Scene, cfg: TrainConfig, progress: bool = True) -> Run:
         drop_generator=torch.Generator().manual_seed(cfg.seed),
         virtual_spacing=cfg.virtual_spacing * camera_spacing(np.stack([c.center for c in cameras.values()])),
     )
+    if cfg.co_train:
+        run.partner = partner_run(run, start, surfaces)
+        run.coprune_distance = cfg.coprune_distance * median_depth(start.points, list(cameras.values()))
+    return run
+
+
+def partner_run(run: Run, start: StartPoints, surfaces: list) -> Run:
+    """The second field of co-training (:mod:`langfield.training.cotrain`): the same start, views and
+    targets, its own colour field, optimizers, strategy and random draws (seed + 1); no language, which
+    co-training does not compare."""
+    cfg = replace(run.cfg, seed=run.cfg.seed + 1, language=False)
+    field = build_field(run.scene, cfg, None, start)
+    field.meta.update(depth=run.field.meta["depth"], training_length=run.field.meta["training_length"])
+    optimizers = make_optimizers(field, field_extent(field), cfg)
+    return replace(
+        run,
+        cfg=cfg,
+        field=field,
+        targets=None,
+        optimizers=optimizers,
+        strategy=TrainingStrategy(cfg, field, optimizers, None, surfaces),
+        means_lr0=optimizers["means"].param_groups[0]["lr"],
+        rng=np.random.default_rng(cfg.seed),
+        drop_generator=torch.Generator().manual_seed(cfg.seed),
+        rendered={},
+        partner=None,
+        co_pruned=[],
+    )
+
+
+def median_depth(points: np.ndarray, cameras: list[Camera]) -> float:
+    """The median z-depth of ``points`` [N, 3] in front of the cameras, over all of them (1 if none is)."""
+    depth = np.concatenate([cam.project(points)[1] for cam in cameras]) if len(points) else np.zeros(0)
+    depth = depth[depth > 0]
+    return float(np.median(depth)) if depth.size else 1.0
