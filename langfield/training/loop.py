@@ -71,6 +71,8 @@ def train(
     run = prepare(scene, cfg or TrainConfig(), progress)
     if clock is not None:
         run.clock = clock
+        if run.partner is not None:
+            run.partner.clock = clock
     cfg, field, names = run.cfg, run.field, list(run.views)
     order: list[str] = []
     log = LossLog()

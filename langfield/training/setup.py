@@ -345,13 +345,15 @@ def partner_run(run: Run, start: StartPoints, surfaces: list) -> Run:
     field = build_field(run.scene, cfg, None, start)
     field.meta.update(depth=run.field.meta["depth"], training_length=run.field.meta["training_length"])
     optimizers = make_optimizers(field, field_extent(field), cfg)
+    strategy = TrainingStrategy(cfg, field, optimizers, None, surfaces)
+    strategy.state["generator"].manual_seed(cfg.seed)  # the field's split samples draw with seed 0
     return replace(
         run,
         cfg=cfg,
         field=field,
         targets=None,
         optimizers=optimizers,
-        strategy=TrainingStrategy(cfg, field, optimizers, None, surfaces),
+        strategy=strategy,
         means_lr0=optimizers["means"].param_groups[0]["lr"],
         rng=np.random.default_rng(cfg.seed),
         drop_generator=torch.Generator().manual_seed(cfg.seed),
