@@ -345,8 +345,7 @@ def partner_run(run: Run, start: StartPoints, surfaces: list) -> Run:
     field = build_field(run.scene, cfg, None, start)
     field.meta.update(depth=run.field.meta["depth"], training_length=run.field.meta["training_length"])
     optimizers = make_optimizers(field, field_extent(field), cfg)
-    strategy = TrainingStrategy(cfg, field, optimizers, None, surfaces)
-    strategy.state["generator"].manual_seed(cfg.seed)  # the field's split samples draw with seed 0
+    strategy = TrainingStrategy(cfg, field, optimizers, None, surfaces, split_seed=cfg.seed)
     return replace(
         run,
         cfg=cfg,

@@ -42,6 +42,7 @@ class TrainingStrategy:
         optimizers: one per Gaussian parameter (:func:`~langfield.training.setup.make_optimizers`).
         targets: the language targets (LOP's prototypes); None without language, which turns LOP off.
         stereo: the start's stereo surfaces, for carving (:func:`stereo_surfaces`); empty: no carving.
+        split_seed: seed of the samples that place split children (co-training's second field: its own).
     """
 
     def __init__(
@@ -51,6 +52,7 @@ class TrainingStrategy:
         optimizers: dict[str, torch.optim.Optimizer],
         targets: LanguageTargets | None,
         stereo: list[Surface],
+        split_seed: int = 0,
     ) -> None:
         self.cfg, self.field, self.optimizers, self.targets, self.stereo = (
             cfg,
@@ -68,6 +70,7 @@ class TrainingStrategy:
             max_gaussians=cfg.max_gaussians or 4 * field.num_gaussians,
             # DNGaussian keeps large Gaussians; 3DGS prunes them only after opacity resets.
             prune_scale3d=None,
+            seed=split_seed,
         )
         self.state = self.densify.initialize_state(field.splats)
         self.extent = field_extent(field)
