@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -379,13 +381,61 @@ def test_every_flag_has_help() -> None:
     assert not missing
 
 
-def test_the_first_compilation_is_announced_once(monkeypatch, capsys) -> None:
-    monkeypatch.setattr(langfield.kernels, "_noticed", False)
-    monkeypatch.setattr(langfield.kernels, "uncompiled_kernels", lambda: ["a", "b"])
+class _Child:
+    """Stands in for subprocess.run: records the call, and the kernels it leaves uncompiled."""
+
+    def __init__(self, monkeypatch, before: list[str], after: list[str], returncode: int = 0) -> None:
+        self.calls: list[tuple[list[str], dict]] = []
+        self.left = list(before)
+        self.after, self.returncode = after, returncode
+        monkeypatch.setattr(langfield.kernels, "_noticed", False)
+        monkeypatch.setattr(langfield.kernels, "uncompiled_kernels", lambda: list(self.left))
+        monkeypatch.setattr(langfield.kernels.subprocess, "run", self.run)
+
+    def run(self, argv, env, check):
+        self.calls.append((argv, env))
+        self.left = list(self.after)
+        return subprocess.CompletedProcess(argv, self.returncode)
+
+
+def test_the_first_compilation_is_announced_once_and_done_in_a_child(monkeypatch, capsys) -> None:
+    monkeypatch.delenv(langfield.kernels.COMPILE_HERE, raising=False)
+    child = _Child(monkeypatch, before=["a", "b"], after=[])
     langfield.kernels.notice_once()
     langfield.kernels.notice_once()
     err = capsys.readouterr().err
     assert err.count("compiling 2 CPU kernels, once") == 1
+    assert "in this process" not in err
+    # One child, this interpreter, told to compile there (not to start a child of its own).
+    [(argv, env)] = child.calls
+    assert argv[0] == sys.executable and "warm_up()" in argv[-1]
+    assert env[langfield.kernels.COMPILE_HERE] == "child"
+
+
+def test_nothing_is_compiled_ahead_when_every_kernel_is_cached(monkeypatch, capsys) -> None:
+    child = _Child(monkeypatch, before=[], after=[])
+    langfield.kernels.notice_once()
+    assert child.calls == [] and capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("here, said", [("1", True), ("child", False)])
+def test_the_warm_up_and_the_child_compile_in_their_own_process(monkeypatch, capsys, here, said) -> None:
+    monkeypatch.setenv(langfield.kernels.COMPILE_HERE, here)
+    child = _Child(monkeypatch, before=["a"], after=[])
+    langfield.kernels.notice_once()
+    assert child.calls == []
+    assert ("compiling 1 CPU kernels" in capsys.readouterr().err) == said
+
+
+@pytest.mark.parametrize("returncode, after", [(1, ["a", "b"]), (0, ["b"])])
+def test_a_failed_compile_ahead_falls_back_to_this_process_and_says_so(
+    monkeypatch, capsys, returncode, after
+) -> None:
+    monkeypatch.delenv(langfield.kernels.COMPILE_HERE, raising=False)
+    _Child(monkeypatch, before=["a", "b"], after=after, returncode=returncode)
+    langfield.kernels.notice_once()
+    err = capsys.readouterr().err
+    assert f"{len(after)} CPU kernels were not cached by a separate compile (exit {returncode})" in err
 
 
 def test_every_kernel_is_cached_after_the_warm_up() -> None:

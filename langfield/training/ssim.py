@@ -13,7 +13,7 @@ import kornia
 import torch
 from torch import Tensor
 
-from langfield.kernels import resolve_backend
+from langfield.kernels import notice_once, resolve_backend
 from querying.metrics import ssim_window, to_bchw
 
 
@@ -28,6 +28,7 @@ def ssim_map(prediction: Tensor, target: Tensor, window: int = 11, backend: str 
         if resolve_backend(backend) == "numba":
             from langfield.training.ssim_cpu import SSIMMapNumba
 
+            notice_once()
             return SSIMMapNumba.apply(prediction, target, size)
         return _ssim_map_stacked(p, t, size)
     return kornia.metrics.ssim(p, t, size)
