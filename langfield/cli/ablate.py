@@ -36,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--cases",
         default=None,
         help="comma-separated cases: full, no-lop, no-lad, no-depth, per-gaussian, paper-language, "
-        "baseline, no-opacity-reg, random-init, sfm-init, depth-init, mean-sweep, no-dropout, no-virtual, "
+        "baseline, no-opacity-reg, random-init, sfm-init, depth-init, mean-sweep, fronto-sweep, no-dropout, "
+        "no-virtual, "
         "no-random-background, no-empty-space, no-opacity-decay, anisotropy, smooth, carve, visibility, "
         "full-resolution, virtual-every-step, half-size-virtual, opacity-noise, orbit, orbit-wide, "
         "both-motions, direction-frequencies, no-direction, depth-baseline, virtual-occlusion, crossview, "

@@ -18,7 +18,8 @@ The sparse-view switches (:mod:`langfield.training.regularisers`,
 
 - ``random-init``, ``sfm-init``, ``depth-init``: another start than the default's (``init="auto"``:
   the depth prior where every training view has one, else the plane-sweep points); ``mean-sweep``:
-  the sweep's score the mean over the other views rather than the best one's;
+  the sweep's score the mean over the other views rather than the best one's; ``fronto-sweep``: the
+  sweep's planes fronto-parallel only (not also tilted);
 - ``no-dropout``: without Gaussian dropout; ``no-virtual``: without the virtual-view consistency term;
   ``no-random-background``: the scene's own background colour in every iteration;
   ``no-empty-space``: no use of the empty space the photos show (alpha, a black backdrop);
@@ -78,6 +79,7 @@ CASES: dict[str, dict[str, Any]] = {
     "sfm-init": {"init": "sfm"},
     "depth-init": {"init": "depth"},
     "mean-sweep": {"init_sweep": "mean"},
+    "fronto-sweep": {"init_planes": "fronto"},
     "no-dropout": {"drop_gamma": 0.0},
     "opacity-noise": {"opacity_noise": 0.2},
     "orbit": {"virtual_motion": "orbit"},

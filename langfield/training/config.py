@@ -40,7 +40,7 @@ from langfield.training.settings import (
     refuse,
     setting,
 )
-from langfield.training.start import INIT_ALIGNS, INIT_METHODS, SWEEP_VIEWS
+from langfield.training.start import INIT_ALIGNS, INIT_METHODS, SWEEP_PLANES, SWEEP_VIEWS
 
 GROUPS = {
     "run": "the run",
@@ -96,8 +96,7 @@ class TrainConfig:
     )
 
     # -- the start (langfield.training.start)
-    # "auto": the aligned depth prior when every training view has one that training uses (it gives
-    # every pixel a point), else plane-sweep stereo, which resolves 5-7 % of a room's pixels.
+    # "auto": the aligned depth prior (a point per pixel) where training uses one, else stereo (5-7 %).
     init: str = in_start(
         "auto",
         "where the Gaussians start: plane-sweep stereo on the training views, COLMAP's sparse SIFT "
@@ -107,8 +106,7 @@ class TrainConfig:
         check=OneOf(("auto", *INIT_METHODS)),
         flag="--init",
     )
-    # The depth start's alignment; each step makes the views agree more (one layer per surface, not one
-    # per view): "anchors" < "views" < "smooth" < "fused".
+    # Each step of the alignment makes the views agree more: "anchors" < "views" < "smooth" < "fused".
     init_align: str = in_start(
         "fused",
         "how the depth start aligns each view's prior: a line refined until the views agree with "
@@ -121,6 +119,12 @@ class TrainConfig:
     # DTU scan37 resolves 33 % more pixels with "best" (its views stand 35-71 degrees apart).
     init_sweep: str = in_start(
         "best", "sweep score of a depth: best view or mean", check=OneOf(SWEEP_VIEWS), flag="--init-sweep"
+    )
+    init_planes: str = in_start(
+        "tilted",
+        "sweep planes: also tilted 30 and 60 degrees up and down, or fronto-parallel only",
+        check=OneOf(tuple(SWEEP_PLANES)),
+        flag="--init-planes",
     )
     init_fill: float = in_start(
         0.1, "random points added to the start, as a fraction of the photo points", check=Number(0.0, 10.0)
@@ -366,8 +370,7 @@ class TrainConfig:
     )
     refiner: str | None = in_sparse_view(
         None,
-        "an ONNX image-refiner folder (manifest kind 'refiner'): cleans renders of virtual views "
-        "that then supervise training, weighted by its confidence (default: none)",
+        "an ONNX image-refiner folder: its cleaned, confidence-weighted virtual views supervise training",
         check=Satisfies(lambda v: v is None or isinstance(v, str), "a model folder (a string) or None"),
         flag="--refiner",
         parse=str,
@@ -401,8 +404,7 @@ class TrainConfig:
         check=Number(0.0, 1.0),
         flag="--half-resolution-until",
     )
-    # The language pass is detached from the geometry, so colour and geometry train the same either
-    # way; skipping the half-size start, where the Gaussians move most, saves time at no loss.
+    # The language pass is detached from the geometry: skipping the half-size start saves time, not quality.
     language_start: float = in_schedule(
         0.33, "fraction of the run before the language term", check=Number(0.0, 1.0), flag="--language-start"
     )
@@ -421,9 +423,7 @@ class TrainConfig:
         None, "last densification iteration (default: the run's end)", check=Whole(0, optional=True)
     )
     grad_threshold: float = in_strategy(
-        0.0013,
-        "mean screen-space gradient that clones or splits a Gaussian",
-        check=Number(0.0, open_low=True),
+        0.0013, "screen-space gradient that clones or splits a Gaussian", check=Number(0.0, open_low=True)
     )
     prune_opacity: float = in_strategy(
         0.01, "opacity under which densification prunes a Gaussian", check=Number(0.0, 1.0)

@@ -29,7 +29,7 @@ from langfield.raster import resolve_backend
 from langfield.training.config import TrainConfig, flag_of
 from langfield.training.lad import LADTarget
 from langfield.training.stages import StageClock
-from langfield.training.start import PlaneSweepConfig, StartPoints, start_points
+from langfield.training.start import SWEEP_PLANES, PlaneSweepConfig, StartPoints, start_points
 from langfield.training.strategy import TrainingStrategy, field_extent, stereo_surfaces
 from langfield.training.targets import (
     LanguageTargets,
@@ -96,7 +96,7 @@ def scene_start(scene: Scene, cfg: TrainConfig) -> StartPoints:
         fill=cfg.init_fill,
         priors=[scene.depth(c.name) for c in train_cams] if method == "depth" else None,
         depth_kind=scene.depth_kind,
-        sweep=PlaneSweepConfig(views=cfg.init_sweep),
+        sweep=PlaneSweepConfig(views=cfg.init_sweep, tilts=SWEEP_PLANES[cfg.init_planes]),
         align=cfg.init_align,
         scene_points=read_points(scene.points_path) if method == "points" else None,
     )

@@ -12,6 +12,7 @@ import langfield as lf
 from langfield.camera import Camera
 from langfield.synthetic import distance_to_surfaces, make_room
 from langfield.training.start import (
+    SWEEP_PLANES,
     SWEEP_VIEWS,
     PlaneSweepConfig,
     dense_points,
@@ -76,6 +77,46 @@ def test_the_best_source_judges_where_the_other_sees_something_else() -> None:
         PlaneSweepConfig(views="median")
 
 
+def ground_views(elevation_deg: float = 30.0) -> tuple[list[Camera], list[np.ndarray], list[np.ndarray]]:
+    """Three cameras 20 degrees apart around the world origin, looking down at it from ``elevation_deg``
+    onto a textured ground (y = 0); exact images (each pixel's ray meets the ground) and z-depths."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.random((400, 400)).astype(np.float32), (0, 0), 2.0)
+    texture = (texture - texture.min()) / np.ptp(texture)
+    cams, images, depths = [], [], []
+    elevation = np.radians(elevation_deg)
+    for azimuth in np.radians([-20.0, 0.0, 20.0]):
+        eye = 2.3 * np.array(
+            [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
+        )
+        cam = Camera.look_at(eye, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), width=W, height=H, fov_x_deg=60)
+        rows, cols = np.mgrid[0:H, 0:W]
+        ray = cam.unproject(np.ones((H, W)), rows.ravel(), cols.ravel()) - cam.center
+        ground = cam.center - (cam.center[1] / ray[:, 1])[:, None] * ray
+        map_x, map_y = ((ground[:, [0, 2]] + 2) * 100 - 0.5).astype(np.float32).T  # 100 texels per unit
+        gray = cv2.remap(texture, map_x.reshape(H, W), map_y.reshape(H, W), cv2.INTER_LINEAR)
+        cams.append(cam)
+        images.append(np.repeat(gray[..., None], 3, axis=2))
+        depths.append(cam.project(ground)[1].reshape(H, W))
+    return cams, images, depths
+
+
+def test_tilted_planes_match_a_ground_seen_from_above() -> None:
+    """Seen 30 degrees from above by cameras 20 degrees apart, the ground's texture looks different in
+    each view under a fronto-parallel window; the planes tilted 60 degrees are the ground's own slant."""
+    cams, images, true = ground_views()
+    sources = [(cams[0], images[0]), (cams[2], images[2])]
+    found, error = {}, {}
+    for name, tilts in SWEEP_PLANES.items():
+        depth, score = plane_sweep(cams[1], images[1], sources, 1.0, 5.0, PlaneSweepConfig(tilts=tilts))
+        found[name] = ((score > 0.7) & (np.abs(depth - true[1]) < 0.01 * true[1])).mean()
+        error[name] = np.median(np.abs(depth - true[1])[score > 0.7] / true[1][score > 0.7])
+    assert found["tilted"] > 0.5 > 0.35 > found["fronto"]  # measured 0.59 and 0.28
+    assert error["tilted"] < 0.003 < error["fronto"]
+    with pytest.raises(ValueError, match="tilts"):
+        PlaneSweepConfig(tilts=(90.0,))
+
+
 def test_plane_sweep_rejects_a_flat_image() -> None:
     cams, images = plane_views(z=2.0)
     flat = [np.full_like(im, 0.5) for im in images]
@@ -129,10 +170,10 @@ def _cell_coverage(points: np.ndarray, cam: Camera, cell: int = 8) -> float:
 
 def test_the_depth_start_covers_what_the_sweep_leaves_out(tmp_path) -> None:
     # Why "auto" picks the depth start where there are priors: the sweep resolves the textured patches
-    # of three views (measured: 59-64 % of the 8 x 8 blocks, 51-55 % with the sources' mean score; its
-    # top-up stays near them), the aligned prior every pixel (89-100 %), at a median 0.4 % of the
-    # diagonal from the surfaces (sweep: 0.4 %; 1.5 % with the fit of before, two passes at 3x the
-    # median against the fused points).
+    # of three views (measured: 67-74 % of the 8 x 8 blocks, 59-64 % with fronto-parallel planes only,
+    # 51-55 % with the sources' mean score; its top-up stays near them), the aligned prior every pixel
+    # (90-100 %), at a median 0.4 % of the diagonal from the surfaces (sweep: 0.4 %; 1.5 % with the fit
+    # of before, two passes at 3x the median against the fused points).
     root = make_room(tmp_path, seed=0, width=160, height=120, n_test=0)
     scene = lf.load_scene(root)
     cams = scene.cameras("train")
@@ -144,7 +185,7 @@ def test_the_depth_start_covers_what_the_sweep_leaves_out(tmp_path) -> None:
     }
     for cam in cams:
         dense, depth = (_cell_coverage(starts[m].points, cam) for m in ("dense", "depth"))
-        assert depth > 0.85 and depth > dense + 0.25, (cam.name, dense, depth)
+        assert depth > 0.85 and depth > dense + 0.2, (cam.name, dense, depth)
     dist = distance_to_surfaces(root, starts["depth"].points)
     assert np.median(dist) < 0.01 * float(np.linalg.norm(bounds[1] - bounds[0]))
 

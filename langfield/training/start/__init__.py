@@ -19,6 +19,7 @@ matching`; pixel geometry is :class:`~langfield.camera.Camera`'s (``project``, `
 from langfield.training.start.depth_prior import INIT_ALIGNS, depth_prior_points
 from langfield.training.start.points import INIT_METHODS, MIN_POINTS, StartPoints, random_points, start_points
 from langfield.training.start.stereo import (
+    SWEEP_PLANES,
     SWEEP_VIEWS,
     PlaneSweepConfig,
     dense_points,
@@ -30,6 +31,7 @@ __all__ = [
     "INIT_ALIGNS",
     "INIT_METHODS",
     "MIN_POINTS",
+    "SWEEP_PLANES",
     "SWEEP_VIEWS",
     "PlaneSweepConfig",
     "StartPoints",
