@@ -122,7 +122,7 @@ class TrainConfig:
     )
     init_planes: str = in_start(
         "tilted",
-        "sweep planes: also tilted 30 and 60 degrees up and down, or fronto-parallel only",
+        "sweep planes: also tilted 30 and 60 degrees, lower rows nearer, or fronto-parallel only",
         check=OneOf(tuple(SWEEP_PLANES)),
         flag="--init-planes",
     )

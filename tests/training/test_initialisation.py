@@ -77,14 +77,14 @@ def test_the_best_source_judges_where_the_other_sees_something_else() -> None:
         PlaneSweepConfig(views="median")
 
 
-def ground_views(elevation_deg: float = 30.0) -> tuple[list[Camera], list[np.ndarray], list[np.ndarray]]:
-    """Three cameras 20 degrees apart around the world origin, looking down at it from ``elevation_deg``
-    onto a textured ground (y = 0); exact images (each pixel's ray meets the ground) and z-depths."""
+def ground_views() -> tuple[list[Camera], list[np.ndarray], list[np.ndarray]]:
+    """Three cameras 20 degrees apart around the world origin, looking down at it from 30 degrees onto a
+    textured ground (y = 0); exact images (each pixel's ray meets the ground) and z-depths."""
     rng = np.random.default_rng(0)
     texture = cv2.GaussianBlur(rng.random((400, 400)).astype(np.float32), (0, 0), 2.0)
     texture = (texture - texture.min()) / np.ptp(texture)
     cams, images, depths = [], [], []
-    elevation = np.radians(elevation_deg)
+    elevation = np.radians(30.0)
     for azimuth in np.radians([-20.0, 0.0, 20.0]):
         eye = 2.3 * np.array(
             [np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)]
@@ -103,16 +103,18 @@ def ground_views(elevation_deg: float = 30.0) -> tuple[list[Camera], list[np.nda
 
 def test_tilted_planes_match_a_ground_seen_from_above() -> None:
     """Seen 30 degrees from above by cameras 20 degrees apart, the ground's texture looks different in
-    each view under a fronto-parallel window; the planes tilted 60 degrees are the ground's own slant."""
+    each view under a fronto-parallel window, which matches it at the wrong depths; the planes tilted 60
+    degrees are the ground's own slant."""
     cams, images, true = ground_views()
     sources = [(cams[0], images[0]), (cams[2], images[2])]
     found, error = {}, {}
     for name, tilts in SWEEP_PLANES.items():
         depth, score = plane_sweep(cams[1], images[1], sources, 1.0, 5.0, PlaneSweepConfig(tilts=tilts))
-        found[name] = ((score > 0.7) & (np.abs(depth - true[1]) < 0.01 * true[1])).mean()
-        error[name] = np.median(np.abs(depth - true[1])[score > 0.7] / true[1][score > 0.7])
+        matched = score > 0.7
+        found[name] = (matched & (np.abs(depth - true[1]) < 0.01 * true[1])).mean()
+        error[name] = np.median(np.abs(depth - true[1])[matched] / true[1][matched])
     assert found["tilted"] > 0.5 > 0.35 > found["fronto"]  # measured 0.59 and 0.28
-    assert error["tilted"] < 0.003 < error["fronto"]
+    assert error["tilted"] < 0.005 < 0.008 < error["fronto"]  # 0.0014 and 0.0113 of the depth
     with pytest.raises(ValueError, match="tilts"):
         PlaneSweepConfig(tilts=(90.0,))
 
@@ -170,7 +172,7 @@ def _cell_coverage(points: np.ndarray, cam: Camera, cell: int = 8) -> float:
 
 def test_the_depth_start_covers_what_the_sweep_leaves_out(tmp_path) -> None:
     # Why "auto" picks the depth start where there are priors: the sweep resolves the textured patches
-    # of three views (measured: 67-74 % of the 8 x 8 blocks, 59-64 % with fronto-parallel planes only,
+    # of three views (measured: 63-72 % of the 8 x 8 blocks, 59-64 % with fronto-parallel planes only,
     # 51-55 % with the sources' mean score; its top-up stays near them), the aligned prior every pixel
     # (90-100 %), at a median 0.4 % of the diagonal from the surfaces (sweep: 0.4 %; 1.5 % with the fit
     # of before, two passes at 3x the median against the fused points).
