@@ -45,7 +45,7 @@ SWEEP_VIEWS = ("best", "mean")
 # The tilts of the planes swept besides the fronto-parallel ones (degrees about the camera's x axis;
 # positive: lower rows nearer, a table seen from above). DTU scan37, seeds 0-2: 20.67 -> 20.85 dB masked.
 SWEEP_PLANES = {"tilted": (30.0, 60.0), "fronto": ()}
-MIN_FACING = 0.2  # cosine of a plane to a pixel's ray (at unit z) below which the plane is not swept there
+MIN_FACING = 0.2  # n . r (r: the ray at unit z) under which a family's planes graze the ray: not swept
 
 
 @dataclass(frozen=True)
@@ -123,9 +123,8 @@ def plane_sweep(
     cross-correlation over a window; the score of a plane is the best source's (``cfg.views`` "best")
     or the mean over the sources that see the pixel ("mean"). Per family the best plane is refined by a
     parabola through its neighbours' scores (in 1/c); a pixel's depth is then c / (n . r) for the best
-    family's plane, r its ray at unit z.
-    A family is not swept where its planes meet a pixel's ray at a grazing angle (n . r <
-    ``MIN_FACING``) or outside [near, far].
+    family's plane, r its ray at unit z. A family is not swept where its planes meet a pixel's ray at a
+    grazing angle (n . r < ``MIN_FACING``) or outside [near, far].
 
     Args:
         ref: the reference camera; ``ref_image`` its [H, W, 3] image in [0, 1].
