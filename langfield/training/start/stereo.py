@@ -165,15 +165,16 @@ def plane_sweep(
         inv_offsets = np.linspace(
             1.0 / (near * facing[swept].min()), 1.0 / (far * facing[swept].max()), cfg.planes
         )
-        scores = _sweep_scores(cfg, g_ref, mu_r, var_r, sources_, k_ref_inv, normal, inv_offsets)
+        scores = _sweep_scores(cfg, size, g_ref, mu_r, var_r, sources_, k_ref_inv, normal, inv_offsets)
+        facing = np.maximum(facing, MIN_FACING)
         if tilt != 0.0:  # the fronto-parallel family meets every pixel within the range
             for i, inv in enumerate(inv_offsets):
-                z = 1.0 / (inv * np.maximum(facing, MIN_FACING))
+                z = 1.0 / (inv * facing)
                 scores[i][~swept | (z < near) | (z > far)] = -1.0
         offset, score, interior = _best_depth(scores, inv_offsets)
-        score = np.where(interior & swept, score, -1.0)  # the end planes are the range's edges
+        score = np.where(interior, score, -1.0)  # the end planes are the range's edges
         better = score > best_score
-        depth = np.where(better, offset / np.maximum(facing, MIN_FACING), depth).astype(np.float32)
+        depth = np.where(better, offset / facing, depth).astype(np.float32)
         best_score = np.where(better, score, best_score).astype(np.float32)
     best_score = np.where(flat | ~np.isfinite(depth), -1.0, best_score).astype(np.float32)
     return np.where(np.isfinite(depth), depth, far).astype(np.float32), best_score
@@ -181,6 +182,7 @@ def plane_sweep(
 
 def _sweep_scores(
     cfg: PlaneSweepConfig,
+    size: int,
     g_ref: np.ndarray,
     mu_r: np.ndarray,
     var_r: np.ndarray,
@@ -190,9 +192,8 @@ def _sweep_scores(
     inv_offsets: np.ndarray,
 ) -> np.ndarray:
     """[P, H, W] each plane n . X = c's score per reference pixel (``plane_sweep``): the best source's
-    ZNCC, or the mean over the sources that see the pixel; -1 where none does."""
+    ZNCC over ``size`` windows, or the mean over the sources that see the pixel; -1 where none does."""
     h, w = g_ref.shape
-    size = max(5, 2 * round(cfg.window * w / 400 / 2) + 1)
     # Pixel centres: OpenCV's warp maps integer pixel coordinates, so shift by the half pixel.
     shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
     unshift = np.linalg.inv(shift)
